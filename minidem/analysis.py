@@ -1,0 +1,89 @@
+"""Rebound measures of an oblique impact (paper eqs 2 and 9) and energy balance."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from minidem.simulation import RunResult
+
+
+def kinetic_energy(mass, inertia, velocity, angular_velocity) -> float:
+    """Translational plus rotational kinetic energy of all particles (J)."""
+    return float(0.5 * np.sum(mass * np.sum(velocity**2, axis=1))
+                 + 0.5 * np.sum(inertia * np.sum(angular_velocity**2, axis=1)))
+
+
+def energy_ratio(result: RunResult) -> float:
+    scene = result.scene
+    before = kinetic_energy(scene.mass, scene.inertia, result.initial_velocity, result.initial_angular_velocity)
+    after = kinetic_energy(scene.mass, scene.inertia, result.velocity, result.angular_velocity)
+    return after / before if before > 0 else math.nan
+
+
+def rebound(result: RunResult) -> dict:
+    """en, et, x, y1, y2 of particle 0 against the impact wall.
+
+    With n the wall normal and t the tangential direction of travel, spin is measured
+    about t x n, so that in gross sliding y2 = -5 mu (eq 8) and the rebound surface
+    velocity is vtr = Vtr + R w_r (eq 9).
+    """
+    scene = result.scene
+    impact = scene.impact
+    n, t = impact.normal, impact.tangent
+    radius = float(scene.radius[0])
+    v0, w0 = result.initial_velocity[0], result.initial_angular_velocity[0]
+    v1, w1 = result.velocity[0], result.angular_velocity[0]
+    spin_axis = np.cross(t, n)
+    normal_in, tangential_in = -float(v0 @ n), float(v0 @ t)
+    normal_out, tangential_out = float(v1 @ n), float(v1 @ t)
+    spin_out = float(w1 @ spin_axis)
+    en = normal_out / normal_in
+    et = tangential_out / tangential_in if tangential_in != 0.0 else math.nan
+    surface_out = tangential_out + radius * spin_out
+    scale = (1.0 + en) * normal_in
+    return {
+        "en": en,
+        "et": et,
+        "x": 2.0 * math.tan(math.radians(impact.angle_deg)) / (1.0 + en),
+        "y1": 2.0 * surface_out / scale,
+        "y2": 2.0 * radius * spin_out / scale,
+        "initial_spin_rad_s": float(w0 @ spin_axis),
+    }
+
+
+SUMMARY_KEYS = ("law", "angle_deg", "speed", "en", "et", "x", "y1", "y2", "contact_duration_s", "max_overlap_m",
+                "energy_ratio", "steps", "dt_s", "wall_time_s")
+
+
+def summary(result: RunResult) -> dict:
+    """The stable keys of summary.json (SUMMARY_KEYS first), then extra detail."""
+    scene = result.scene
+    out = {"law": result.law.name}
+    if scene.impact is not None:
+        out.update({"angle_deg": scene.impact.angle_deg, "speed": scene.impact.speed})
+        measures = rebound(result)
+    else:
+        out.update({"angle_deg": None, "speed": None})
+        measures = {k: None for k in ("en", "et", "x", "y1", "y2")}
+    out.update({k: measures[k] for k in ("en", "et", "x", "y1", "y2")})
+    duration = (result.last_separation_time - result.first_contact_time
+                if result.first_contact_time >= 0 and result.last_separation_time >= 0 else None)
+    out.update({
+        "contact_duration_s": duration,
+        "max_overlap_m": result.max_overlap,
+        "energy_ratio": energy_ratio(result),
+        "steps": result.steps,
+        "dt_s": result.dt,
+        "wall_time_s": result.wall_time,
+        "peak_normal_force_n": result.peak_normal_force,
+        "peak_tangential_force_n": result.peak_tangential_force,
+        "separated": result.separated,
+        "dt_reason": result.dt_reason,
+        "scenario": scene.source,
+        "law_parameters": scene.law_parameters,
+        "law_constants": {f"{scene.materials[a].name}/{scene.materials[b].name}": c
+                          for (a, b), c in result.constants.items()},
+    })
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in out.items()}

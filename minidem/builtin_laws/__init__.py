@@ -1,0 +1,15 @@
+"""minidem's built-in contact laws (the paper's models).
+
+This module is reached only through the ``minidem`` entry point in minidem's own
+``pyproject.toml``, exactly like a third-party plugin: the engine never imports it.
+"""
+
+from minidem.hookspecs import hookimpl
+
+
+@hookimpl
+def minidem_register_laws(registry):
+    from minidem.builtin_laws import hertz, linear
+
+    for law in linear.LAWS + hertz.LAWS:
+        registry.add(law)

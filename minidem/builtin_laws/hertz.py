@@ -1,0 +1,304 @@
+"""Hertz normal contact with the paper's tangential models (sections 3.1, 3.3, 3.4, 5).
+
+All five laws share the Hertz normal force Fn = 4/3 E* sqrt(R*) d^(3/2) (eq 15), with an
+optional dashpot mapped from a coefficient of restitution, and differ only in the
+tangential force:
+
+    hmd                  incremental Mindlin-Deresiewicz (Thornton's form, eqs 18-24)
+    hm                   incremental Mindlin no-slip, kt = 8 G* a (eq 39)
+    lth                  Langston-Tuzun-Heyes, integral on the total displacement (eq 35)
+    hmdns_integral       secant stiffness on the total displacement (eq 38)
+    hmdns_integral_reset eq 38 with the displacement reset at the Coulomb limit (eq 40)
+"""
+
+import math
+
+import numba
+
+from minidem.builtin_laws.common import (
+    FRICTION,
+    RESTITUTION,
+    coulomb_cap,
+    hertz_damping_factor,
+    incremental_spring,
+    norm3,
+)
+from minidem.laws import ContactLaw, HistorySlot, Parameter
+
+# indices into the constants row (the order of HERTZ_CONSTANTS)
+HERTZ_MODULUS, SHEAR_MODULUS, MU, DAMPING, KAPPA, REVERSAL_CHECK = range(6)
+HERTZ_CONSTANTS = (
+    "hertz_modulus",  # 4/3 E*, Pa: Fn = hertz_modulus sqrt(R*) d^1.5
+    "shear_modulus",  # 8 G*, Pa: kt = 8 G* a, a = sqrt(R* d)
+    "friction",
+    "damping_factor",  # alpha: dashpot alpha sqrt(m* K) d^(1/4), K = 4/3 E* sqrt(R*)
+    "stiffness_ratio",  # kappa = 4 G*/E* (eq 10)
+    "reversal_check",  # hmd only, see hmd_force
+)
+
+
+def prepare_hertz(pair, params):
+    return {
+        "hertz_modulus": 4.0 / 3.0 * pair.effective_modulus,
+        "shear_modulus": 8.0 * pair.effective_shear_modulus,
+        "friction": params["friction"],
+        "damping_factor": hertz_damping_factor(params["restitution"]),
+        "stiffness_ratio": pair.stiffness_ratio,
+        "reversal_check": params.get("reversal_check", 1.0),
+    }
+
+
+@numba.njit(cache=True, inline="always")
+def hertz_normal_force(constants, effective_radius, effective_mass, normal_overlap, normal_velocity):
+    """Eq 15, K d^1.5 with K = 4/3 E* sqrt(R*), plus the Tsuji-type dashpot
+    alpha sqrt(m* K) d^(1/4) d'.
+
+    The force is not clipped at zero: the contact ends when the overlap does, which is
+    what the restitution mapping assumes. Friction uses max(Fn, 0).
+    """
+    stiffness = constants[HERTZ_MODULUS] * math.sqrt(effective_radius)
+    root = math.sqrt(normal_overlap)
+    elastic = stiffness * normal_overlap * root
+    if constants[DAMPING] == 0.0:
+        return elastic
+    return elastic + constants[DAMPING] * math.sqrt(effective_mass * stiffness * root) * normal_velocity
+
+
+# ---------------------------------------------------------------------------------
+# HMD: Thornton's incremental Mindlin-Deresiewicz law
+# ---------------------------------------------------------------------------------
+# History layout. The paper's law is one-dimensional; minidem applies it along a
+# per-contact loading axis (a unit vector in the tangent plane, set by the first
+# tangential displacement and re-aimed along the force whenever the contact slides).
+# The displacement component across the axis is carried with the current tangent
+# stiffness 8 G* a theta. In the paper's planar impact the cross component is zero and
+# the law is exactly eqs 18-24.
+FT, AXIS, FT_STAR, FT_2STAR, MODE, SLIDING = 0, 3, 6, 7, 8, 9
+VIRGIN, LOADING, UNLOADING, RELOADING = 0.0, 1.0, 2.0, 3.0
+
+
+@numba.njit(cache=True)
+def hmd_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+              normal_velocity, tangential_increment, tangential_velocity, history):
+    normal_force = hertz_normal_force(constants, effective_radius, effective_mass, normal_overlap, normal_velocity)
+    mu = constants[MU]
+    if mu == 0.0:
+        return normal_force, 0.0, 0.0, 0.0
+    # Mindlin-Deresiewicz's N is the elastic normal force: the dashpot does not widen
+    # the contact area.
+    stiffness = constants[HERTZ_MODULUS] * math.sqrt(effective_radius)
+    fn = stiffness * normal_overlap ** 1.5
+    dfn = fn - stiffness * max(normal_overlap - normal_overlap_increment, 0.0) ** 1.5
+    stick_stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius * normal_overlap)  # 8 G* a
+    limit = mu * max(normal_force, 0.0)
+
+    ddx, ddy, ddz = tangential_increment[0], tangential_increment[1], tangential_increment[2]
+    ax, ay, az = history[AXIS], history[AXIS + 1], history[AXIS + 2]
+    if ax == 0.0 and ay == 0.0 and az == 0.0:
+        increment = norm3(ddx, ddy, ddz)
+        if increment == 0.0:
+            return normal_force, 0.0, 0.0, 0.0
+        ax, ay, az = ddx / increment, ddy / increment, ddz / increment
+        history[MODE] = LOADING
+    along = ddx * ax + ddy * ay + ddz * az
+    ftx, fty, ftz = history[FT], history[FT + 1], history[FT + 2]
+    force_along = ftx * ax + fty * ay + ftz * az  # Ft in the paper's 1-D sense
+    cross_x, cross_y, cross_z = ftx - force_along * ax, fty - force_along * ay, ftz - force_along * az
+
+    mode = history[MODE]
+    # eq 23: the load-reversal points follow the normal force
+    ft_star = history[FT_STAR] + mu * dfn
+    ft_2star = history[FT_2STAR] - mu * dfn
+
+    stays_sliding = False
+    if history[SLIDING] != 0.0 and constants[REVERSAL_CHECK] != 0.0:
+        # While sliding, a reversed displacement starts unloading only when the elastic
+        # trial force is back inside the Coulomb cone (the test LS and HM make); with
+        # reversal_check = 0 the branch reverses the instant the displacement does.
+        if force_along + stick_stiffness * along >= limit:
+            stays_sliding = True
+        elif along < 0.0:
+            mode = UNLOADING
+            ft_star = force_along
+    elif mode == LOADING and along < 0.0:
+        mode = UNLOADING
+        ft_star = force_along
+    elif mode == UNLOADING and along > 0.0:
+        mode = RELOADING
+        ft_2star = force_along
+    elif mode == RELOADING and along < 0.0:
+        mode = UNLOADING
+        ft_star = force_along
+
+    if stays_sliding:
+        force_along = limit
+        cross_x, cross_y, cross_z = 0.0, 0.0, 0.0
+    else:
+        if dfn > 0.0 and stick_stiffness * abs(along) < mu * dfn:
+            theta = 1.0  # eqs 19 and 24: increments below mu dFn cause no slip
+        else:
+            if mode == UNLOADING:
+                theta_cubed = 1.0 - (ft_star - force_along + 2.0 * mu * dfn) / (2.0 * mu * fn)  # 22b
+            elif mode == RELOADING:
+                theta_cubed = 1.0 - (force_along - ft_2star + 2.0 * mu * dfn) / (2.0 * mu * fn)  # 22c
+            else:
+                theta_cubed = 1.0 - (force_along + mu * dfn) / (mu * fn)  # 22a
+            theta = min(max(theta_cubed, 0.0), 1.0) ** (1.0 / 3.0)
+        branch_sign = -1.0 if mode == UNLOADING else 1.0
+        # eq 21: dFt = 8 G* a theta dd (+/-) mu dFn (1 - theta)
+        force_along += stick_stiffness * theta * along + branch_sign * mu * dfn * (1.0 - theta)
+        tangent_stiffness = stick_stiffness * theta
+        cross_x += tangent_stiffness * (ddx - along * ax)
+        cross_y += tangent_stiffness * (ddy - along * ay)
+        cross_z += tangent_stiffness * (ddz - along * az)
+        if mode == RELOADING and force_along >= ft_star:
+            mode = LOADING  # back on the virgin curve: the reversal memory is erased
+        elif mode == UNLOADING and force_along <= -ft_star:
+            # full reversal: virgin loading in the opposite direction
+            ax, ay, az = -ax, -ay, -az
+            force_along = -force_along
+            cross_x, cross_y, cross_z = -cross_x, -cross_y, -cross_z
+            mode = LOADING
+
+    ftx = force_along * ax + cross_x
+    fty = force_along * ay + cross_y
+    ftz = force_along * az + cross_z
+    ftx, fty, ftz, capped = coulomb_cap(ftx, fty, ftz, limit)
+    sliding = capped or stays_sliding
+    if sliding:
+        magnitude = norm3(ftx, fty, ftz)
+        if magnitude > 0.0:
+            ax, ay, az = ftx / magnitude, fty / magnitude, ftz / magnitude
+        mode = LOADING
+        ft_star = magnitude
+        ft_2star = -magnitude
+    history[FT], history[FT + 1], history[FT + 2] = ftx, fty, ftz
+    history[AXIS], history[AXIS + 1], history[AXIS + 2] = ax, ay, az
+    history[FT_STAR], history[FT_2STAR] = ft_star, ft_2star
+    history[MODE] = mode
+    history[SLIDING] = 1.0 if sliding else 0.0
+    return normal_force, ftx, fty, ftz
+
+
+# ---------------------------------------------------------------------------------
+# HM: incremental Mindlin no-slip (eq 39)
+# ---------------------------------------------------------------------------------
+@numba.njit(cache=True)
+def hm_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+             normal_velocity, tangential_increment, tangential_velocity, history):
+    normal_force = hertz_normal_force(constants, effective_radius, effective_mass, normal_overlap, normal_velocity)
+    stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius * normal_overlap)
+    ftx, fty, ftz = incremental_spring(history, stiffness, tangential_increment,
+                                       constants[MU] * max(normal_force, 0.0))
+    return normal_force, ftx, fty, ftz
+
+
+# ---------------------------------------------------------------------------------
+# Integral laws on the total tangential displacement (eqs 35, 38, 40)
+# ---------------------------------------------------------------------------------
+@numba.njit(cache=True, inline="always")
+def _accumulate_displacement(history, tangential_increment):
+    history[0] += tangential_increment[0]
+    history[1] += tangential_increment[1]
+    history[2] += tangential_increment[2]
+    return history[0], history[1], history[2]
+
+
+@numba.njit(cache=True, inline="always")
+def _secant_force(constants, effective_radius, effective_mass, normal_overlap, normal_velocity,
+                  tangential_increment, history, reset):
+    normal_force = hertz_normal_force(constants, effective_radius, effective_mass, normal_overlap, normal_velocity)
+    stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius * normal_overlap)
+    sx, sy, sz = _accumulate_displacement(history, tangential_increment)
+    ftx, fty, ftz, sliding = coulomb_cap(stiffness * sx, stiffness * sy, stiffness * sz,
+                                         constants[MU] * max(normal_force, 0.0))
+    if reset and sliding:
+        # eq 40: the stored displacement becomes the elastic one, mu Fn / kt
+        history[0], history[1], history[2] = ftx / stiffness, fty / stiffness, ftz / stiffness
+    return normal_force, ftx, fty, ftz
+
+
+@numba.njit(cache=True)
+def integral_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+                   normal_velocity, tangential_increment, tangential_velocity, history):
+    return _secant_force(constants, effective_radius, effective_mass, normal_overlap, normal_velocity,
+                         tangential_increment, history, False)
+
+
+@numba.njit(cache=True)
+def integral_reset_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+                         normal_velocity, tangential_increment, tangential_velocity, history):
+    return _secant_force(constants, effective_radius, effective_mass, normal_overlap, normal_velocity,
+                         tangential_increment, history, True)
+
+
+@numba.njit(cache=True)
+def lth_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+              normal_velocity, tangential_increment, tangential_velocity, history):
+    normal_force = hertz_normal_force(constants, effective_radius, effective_mass, normal_overlap, normal_velocity)
+    sx, sy, sz = _accumulate_displacement(history, tangential_increment)
+    displacement = norm3(sx, sy, sz)
+    if displacement == 0.0:
+        return normal_force, 0.0, 0.0, 0.0
+    mu = constants[MU]
+    # eq 32: sliding displacement d* = mu d / kappa
+    sliding_displacement = mu * normal_overlap / constants[KAPPA]
+    if sliding_displacement <= 0.0:
+        return normal_force, 0.0, 0.0, 0.0
+    ratio = min(displacement / sliding_displacement, 1.0)
+    magnitude = mu * max(normal_force, 0.0) * (1.0 - (1.0 - ratio) ** 1.5)  # eq 35
+    if displacement > sliding_displacement:
+        # Langston et al.: beyond d* the displacement is held at d* (section 3.4)
+        scale = sliding_displacement / displacement
+        history[0], history[1], history[2] = sx * scale, sy * scale, sz * scale
+    return normal_force, magnitude * sx / displacement, magnitude * sy / displacement, magnitude * sz / displacement
+
+
+def _law(name, description, force, history, reference, aliases=(), extra=()):
+    return ContactLaw(
+        name=name,
+        description=description,
+        parameters=(FRICTION, RESTITUTION) + extra,
+        constants=HERTZ_CONSTANTS,
+        history=history,
+        prepare=prepare_hertz,
+        force=force,
+        aliases=aliases,
+        reference=reference,
+    )
+
+
+_FORCE_SLOT = (HistorySlot("tangential_force", "spring force in the tangent plane (N)", vector=True),)
+_DISPLACEMENT_SLOT = (HistorySlot("tangential_displacement", "total tangential displacement (m)", vector=True),)
+
+HMD = _law(
+    "hmd",
+    "Hertz + Mindlin-Deresiewicz, Thornton's incremental form with load-reversal memory (eqs 15-24)",
+    hmd_force,
+    _FORCE_SLOT + (
+        HistorySlot("loading_axis", "unit loading direction in the tangent plane", vector=True),
+        HistorySlot("ft_star", "load-reversal point Ft* along the axis (N)"),
+        HistorySlot("ft_2star", "load-reversal point Ft** along the axis (N)"),
+        HistorySlot("mode", "0 virgin, 1 loading, 2 unloading, 3 reloading"),
+        HistorySlot("sliding", "1 while the force is on the Coulomb limit"),
+    ),
+    "Thornton, Cummins & Cleary (2011) section 3.1; Thornton & Yin (1991)",
+    aliases=("hertz_mindlin_deresiewicz",),
+    extra=(Parameter("reversal_check", 1.0, "-", "1: while sliding, reverse to unloading only when "
+                     "the elastic trial force is inside the Coulomb cone; 0: reverse the instant "
+                     "the displacement does (see docs/laws.md)", low=0.0, high=1.0),),
+)
+HM = _law("hm", "Hertz + Mindlin no-slip, incremental Ft += 8 G* a dd (eq 39)", hm_force, _FORCE_SLOT,
+          "Thornton, Cummins & Cleary (2011) section 3.3", aliases=("hertz_mindlin",))
+LTH = _law("lth", "Langston-Tuzun-Heyes: Ft = mu Fn [1 - (1 - min(|s|/s*, 1))^1.5] on the total "
+           "displacement (eq 35)", lth_force, _DISPLACEMENT_SLOT,
+           "Thornton, Cummins & Cleary (2011) section 3.4")
+INTEGRAL = _law("hmdns_integral", "Hertz + Mindlin, secant Ft = 8 G* a s on the total displacement "
+                "(eq 38, Di Renzo & Di Maio's H-MDns); creates energy", integral_force, _DISPLACEMENT_SLOT,
+                "Thornton, Cummins & Cleary (2011) section 5", aliases=("h-mdns", "integral"))
+INTEGRAL_RESET = _law("hmdns_integral_reset", "eq 38 with the displacement reset to mu Fn / kt at "
+                      "the Coulomb limit (eq 40; LIGGGHTS' default Hertz)", integral_reset_force,
+                      _DISPLACEMENT_SLOT, "Thornton, Cummins & Cleary (2011) section 5 and appendix",
+                      aliases=("integral_reset",))
+
+LAWS = [HMD, HM, LTH, INTEGRAL, INTEGRAL_RESET]

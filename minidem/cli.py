@@ -1,0 +1,177 @@
+"""Command line: ``minidem run``, ``minidem laws``, ``minidem docs``.
+
+Exit codes: 0 success, 2 bad input (scenario, law or option), 1 failure during the run.
+A Python traceback is shown only with ``--debug``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import warnings
+from pathlib import Path
+
+EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT = 0, 1, 2
+
+
+def _format_value(value) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return str(value)
+
+
+def print_summary(summary: dict, out=sys.stdout) -> None:
+    rows = [
+        ("law", summary["law"], ""),
+        ("impact angle", summary["angle_deg"], "deg"),
+        ("impact speed", summary["speed"], "m/s"),
+        ("en", summary["en"], "normal restitution"),
+        ("et", summary["et"], "tangential restitution"),
+        ("x", summary["x"], "2 tan(theta)/(1+en)"),
+        ("y1", summary["y1"], "normalised rebound surface velocity"),
+        ("y2", summary["y2"], "normalised rebound spin"),
+        ("contact duration", summary["contact_duration_s"], "s"),
+        ("max overlap", summary["max_overlap_m"], "m"),
+        ("peak normal force", summary["peak_normal_force_n"], "N"),
+        ("peak tangential force", summary["peak_tangential_force_n"], "N"),
+        ("energy ratio", summary["energy_ratio"], "final/initial kinetic+rotational"),
+        ("steps", summary["steps"], f"dt = {_format_value(summary['dt_s'])} s"),
+        ("wall time", summary["wall_time_s"], "s"),
+    ]
+    width = max(len(name) for name, _, _ in rows)
+    for name, value, note in rows:
+        print(f"  {name:<{width}}  {_format_value(value):>14}  {note}", file=out)
+
+
+def command_run(args) -> int:
+    from minidem import analysis, output, scenario, simulation
+
+    scene = scenario.load_scene(args.file, args.set, args.out)
+    sim = simulation.Simulation(scene)
+    if not args.quiet:
+        print(f"minidem: {scene.source}: law '{sim.law.name}' ({sim.entry.distribution} {sim.entry.version}), "
+              f"{scene.n_particles} particle(s), {scene.wall_point.shape[0]} wall(s)")
+        print(f"  time step {sim.dt:.4g} s ({sim.dt_reason})")
+    result = sim.run()
+    summary = analysis.summary(result)
+    directory = scene.output_directory
+    output.write_json(directory / "summary.json", summary)
+    if result.trace is not None:
+        from minidem.kernel import TRACE_COLUMNS
+
+        output.write_csv(directory / "trace.csv", TRACE_COLUMNS, result.trace.tolist())
+    if not args.quiet:
+        print_summary(summary)
+        if not result.separated and scene.stop == "separation":
+            print(f"  warning: the contact had not ended by t = {result.time:.4g} s (run.end_time)")
+        print(f"  wrote {directory / 'summary.json'}")
+    return EXIT_OK
+
+
+def command_laws(args) -> int:
+    from minidem import laws
+
+    registry = laws.registry()
+    if args.json:
+        payload = {
+            "laws": [{
+                "name": e.law.name, "plugin": e.plugin, "package": e.distribution, "version": e.version,
+                "description": e.law.description, "aliases": list(e.law.aliases),
+                "history_slots": e.law.history_size,
+                "parameters": [{"name": p.name, "default": p.default, "unit": p.unit, "bounds": p.bounds_text(),
+                                "required": p.required, "description": p.description} for p in e.law.parameters],
+            } for e in registry.entries()],
+            "broken": [vars(b) for b in registry.broken],
+        }
+        print(json.dumps(payload, indent=2))
+        return EXIT_OK
+    for e in registry.entries():
+        aliases = f" (aliases: {', '.join(e.law.aliases)})" if e.law.aliases else ""
+        print(f"{e.law.name}{aliases}  [{e.distribution} {e.version}, plugin '{e.plugin}']")
+        print(f"    {e.law.description}")
+        for p in e.law.parameters:
+            default = "required" if p.required else ("derived" if p.default is None else f"{p.default:g}")
+            print(f"    - {p.name:<22} {default:>9} {p.unit:<5} {p.bounds_text():<14} {p.description}")
+        print(f"    history: {e.law.history_size} slot(s) per contact")
+    for b in registry.broken:
+        print(f"BROKEN plugin '{b.plugin}'" + (f" law '{b.law}'" if b.law else "") + f": {b.reason}")
+    return EXIT_OK
+
+
+def command_docs(args) -> int:
+    from minidem import scenario
+
+    text = scenario.reference_markdown()
+    if args.write:
+        from minidem.output import atomic_write
+
+        atomic_write(args.write, text)
+    else:
+        print(text)
+    return EXIT_OK
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from minidem import __version__
+
+    parser = argparse.ArgumentParser(prog="minidem", description="Soft-sphere DEM with pluggable contact laws.")
+    parser.add_argument("--version", action="version", version=f"minidem {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show Python tracebacks on errors")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    run = sub.add_parser("run", help="run a scenario file")
+    run.add_argument("file", type=Path, help="scenario TOML file")
+    run.add_argument("--out", type=Path, default=None, help="output directory (overrides output.directory)")
+    run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                     help="override a scenario value, dotted keys (repeatable): --set impact.angle_deg=30")
+    run.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    run.set_defaults(handler=command_run)
+
+    show = sub.add_parser("laws", help="list installed contact laws and broken plugins")
+    show.add_argument("--json", action="store_true", help="machine-readable output")
+    show.set_defaults(handler=command_laws)
+
+    docs = sub.add_parser("docs", help="print the scenario-file reference (markdown)")
+    docs.add_argument("--write", type=Path, help="write it to this file instead")
+    docs.set_defaults(handler=command_docs)
+    return parser
+
+
+def main(argv=None) -> int:
+    from minidem.laws import LawError
+    from minidem.scenario import ScenarioError
+    from minidem.simulation import RunFailure
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.showwarning = lambda message, *a, **k: print(f"minidem: warning: {message}", file=sys.stderr)
+        try:
+            return args.handler(args)
+        except (ScenarioError, LawError) as exc:
+            if args.debug:
+                raise
+            print(f"minidem: error: {exc}", file=sys.stderr)
+            return EXIT_BAD_INPUT
+        except RunFailure as exc:
+            if args.debug:
+                raise
+            print(f"minidem: run failed: {exc}", file=sys.stderr)
+            return EXIT_FAILURE
+        except KeyboardInterrupt:
+            print("minidem: interrupted", file=sys.stderr)
+            return 130
+        except Exception as exc:  # noqa: BLE001 - never a bare traceback without --debug
+            if args.debug:
+                raise
+            print(f"minidem: internal error: {type(exc).__name__}: {exc} (rerun with --debug for the traceback)",
+                  file=sys.stderr)
+            return EXIT_FAILURE
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,408 @@
+"""Contact laws: the declarative law object, the material pair it is prepared for, and
+the registry that finds laws through entry points.
+
+A contact law is data plus two functions (see ``docs/writing-a-contact-law.md``):
+
+* ``prepare(pair, params) -> dict``: plain Python, run once per material pair before the
+  simulation is compiled; turns material properties and law parameters into the named
+  constants the force function reads.
+* ``force(constants, effective_radius, effective_mass, normal_overlap,
+  normal_overlap_increment, normal_velocity, tangential_increment, tangential_velocity,
+  history) -> (fn, ftx, fty, ftz)``:
+  a ``numba.njit`` function called by the engine's compiled contact loop. It sees one
+  contact at a time and never particles, neighbour lists or walls.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import hashlib
+import importlib.metadata
+import inspect
+import math
+import re
+import traceback
+from typing import Any, Callable, Mapping
+
+import pluggy
+
+from minidem import hookspecs
+
+ENTRY_POINT_GROUP = hookspecs.PROJECT_NAME
+_NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_]*$")
+
+
+@dataclasses.dataclass(frozen=True)
+class Parameter:
+    """A typed law parameter, settable from ``[contact]`` in a scenario file.
+
+    ``default=None`` means "derived by ``prepare`` when not given" (for example the
+    linear-spring stiffness calibrated from the Hertz contact time). ``low``/``high``
+    are inclusive bounds unless ``low_open``/``high_open`` say otherwise.
+    """
+
+    name: str
+    default: float | None
+    unit: str
+    description: str
+    low: float = -math.inf
+    high: float = math.inf
+    low_open: bool = False
+    high_open: bool = False
+    required: bool = False
+
+    def check(self, value: Any) -> str | None:
+        """Return why ``value`` is invalid, or None when it is valid."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return f"must be a number, got {value!r}"
+        value = float(value)
+        if not math.isfinite(value):
+            return f"must be finite, got {value!r}"
+        if value < self.low or (self.low_open and value == self.low):
+            return f"must be {'>' if self.low_open else '>='} {self.low:g}, got {value:g}"
+        if value > self.high or (self.high_open and value == self.high):
+            return f"must be {'<' if self.high_open else '<='} {self.high:g}, got {value:g}"
+        return None
+
+    def bounds_text(self) -> str:
+        lo = "(" if self.low_open else "["
+        hi = ")" if self.high_open else "]"
+        return f"{lo}{self.low:g}, {self.high:g}{hi}"
+
+
+@dataclasses.dataclass(frozen=True)
+class HistorySlot:
+    """Per-contact state the law keeps between steps.
+
+    ``vector`` slots take three consecutive floats. The engine owns their geometry:
+    it rotates them into the current tangent plane as the contact rotates (keeping
+    their magnitude) and stores them as seen from the first particle of the pair, so a
+    law can treat them as 2-D tangential vectors. Scalar slots are never touched by the
+    engine. All slots are zero at first touch and dropped at separation.
+    """
+
+    name: str
+    description: str
+    vector: bool = False
+
+    @property
+    def size(self) -> int:
+        return 3 if self.vector else 1
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactPair:
+    """What ``prepare`` knows about a pair of materials (paper section 2, general forms).
+
+    Constants depend on the two materials only: the effective radius R* and mass m* of
+    a contact change from contact to contact in a polydisperse scene, so the engine
+    passes them to the force function. Laws that calibrate a constant from a size and a
+    speed (the linear spring, eq 28) use ``reference_radius``/``reference_mass`` (the
+    effective values of the scene's typical contact: the impact sphere on its wall, or
+    two mean particles) and ``reference_speed`` (the [impact] speed; None without one).
+    """
+
+    effective_modulus: float  # E*, Pa: 1/E* = (1-nu1^2)/E1 + (1-nu2^2)/E2
+    effective_shear_modulus: float  # G*, Pa: 1/G* = (2-nu1)/G1 + (2-nu2)/G2
+    poisson_ratio_1: float
+    poisson_ratio_2: float
+    reference_radius: float  # m
+    reference_mass: float  # kg
+    reference_speed: float | None = None
+
+    @property
+    def stiffness_ratio(self) -> float:
+        """kappa = kt/kn of Hertz-Mindlin, 8 G* a / (2 E* a) = 4 G*/E* (eq 10)."""
+        return 4.0 * self.effective_shear_modulus / self.effective_modulus
+
+    @classmethod
+    def from_materials(cls, mat1, mat2, reference_radius, reference_mass, reference_speed=None):
+        e_star = 1.0 / ((1 - mat1.poisson_ratio**2) / mat1.youngs_modulus + (1 - mat2.poisson_ratio**2) / mat2.youngs_modulus)
+        g1 = mat1.youngs_modulus / (2 * (1 + mat1.poisson_ratio))
+        g2 = mat2.youngs_modulus / (2 * (1 + mat2.poisson_ratio))
+        g_star = 1.0 / ((2 - mat1.poisson_ratio) / g1 + (2 - mat2.poisson_ratio) / g2)
+        return cls(e_star, g_star, mat1.poisson_ratio, mat2.poisson_ratio, reference_radius, reference_mass, reference_speed)
+
+
+def hertz_contact_time(effective_modulus: float, effective_radius: float, effective_mass: float, normal_speed: float) -> float:
+    """Duration of an elastic Hertz normal impact, tc = 2.868 (m*^2/(R* E*^2 v))^(1/5) (eq 13)."""
+    return 2.868 * (effective_mass**2 / (effective_radius * effective_modulus**2 * normal_speed)) ** 0.2
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactLaw:
+    """A contact force law, declared once and registered by a plugin.
+
+    name          unique lower-case identifier used in scenario files (``law = "hmd"``)
+    description   one line for ``minidem laws``
+    parameters    the law's settable parameters (friction included when the law has it)
+    constants     names of the per-material-pair constants ``prepare`` returns, in the
+                  order the force function indexes them
+    history       per-contact state slots
+    prepare       ``prepare(pair: ContactPair, params: dict[str, float|None]) -> dict``
+    force         numba ``@njit`` function (signature in the module docstring); must be
+                  defined at module level so the engine can import it into its
+                  specialised, cached kernel
+    contact_time  optional ``contact_time(pair, constants: dict, effective_radius,
+                  effective_mass, normal_speed) -> s``: the law's own normal-impact
+                  duration, used for the automatic time step; the Hertz value (eq 13)
+                  is used when absent
+    aliases       other accepted names (the paper's names, e.g. "H-MDns")
+    frictional    False when the law can never produce a tangential force; the engine
+                  then drops spin from the compiled step. A law with a ``friction``
+                  parameter is also treated as frictionless when friction = 0.
+    """
+
+    name: str
+    description: str
+    parameters: tuple[Parameter, ...]
+    constants: tuple[str, ...]
+    history: tuple[HistorySlot, ...]
+    prepare: Callable[[ContactPair, dict], Mapping[str, float]]
+    force: Any
+    contact_time: Callable | None = None
+    aliases: tuple[str, ...] = ()
+    frictional: bool = True
+    reference: str = ""
+
+    @property
+    def history_size(self) -> int:
+        return sum(slot.size for slot in self.history)
+
+    @property
+    def vector_history_offsets(self) -> tuple[int, ...]:
+        offsets, at = [], 0
+        for slot in self.history:
+            if slot.vector:
+                offsets.append(at)
+            at += slot.size
+        return tuple(offsets)
+
+    def parameter(self, name: str) -> Parameter:
+        for p in self.parameters:
+            if p.name == name:
+                return p
+        raise KeyError(name)
+
+    def resolve_parameters(self, given: Mapping[str, Any]) -> tuple[dict, list[str]]:
+        """Defaults filled in and every value checked; returns (values, errors)."""
+        errors, values = [], {}
+        known = {p.name for p in self.parameters}
+        for key in given:
+            if key not in known:
+                close = difflib.get_close_matches(key, sorted(known), n=1)
+                hint = f" (did you mean '{close[0]}'?)" if close else ""
+                valid = ", ".join(sorted(known)) or "none"
+                errors.append(f"unknown parameter '{key}' for law '{self.name}'{hint}; valid: {valid}")
+        for p in self.parameters:
+            value = given.get(p.name, p.default)
+            if value is None and p.required:
+                errors.append(f"law '{self.name}' needs parameter '{p.name}' ({p.description}, unit {p.unit or '-'}, bounds {p.bounds_text()})")
+                continue
+            if value is None:
+                values[p.name] = None
+                continue
+            why = p.check(value)
+            if why:
+                errors.append(f"'{p.name}' {why} (unit {p.unit or '-'}, bounds {p.bounds_text()})")
+            else:
+                values[p.name] = float(value)
+        return values, errors
+
+    def prepared_constants(self, pair: ContactPair, params: Mapping[str, Any]):
+        """Run ``prepare`` and order its result as the force function expects."""
+        import numpy as np
+
+        produced = dict(self.prepare(pair, dict(params)))
+        missing = [c for c in self.constants if c not in produced]
+        if missing:
+            raise LawError(f"law '{self.name}': prepare() did not return constants {missing}")
+        row = np.array([float(produced[c]) for c in self.constants], dtype=np.float64)
+        if not np.all(np.isfinite(row)):
+            bad = [c for c, v in zip(self.constants, row) if not math.isfinite(v)]
+            raise LawError(f"law '{self.name}': prepare() returned non-finite constants {bad}")
+        return row, produced
+
+    def is_frictional(self, params: Mapping[str, Any]) -> bool:
+        if not self.frictional:
+            return False
+        return params.get("friction", 1.0) != 0.0
+
+    def source_fingerprint(self) -> str:
+        """Hash of the force function's source, so a changed law never reuses a stale kernel."""
+        func = getattr(self.force, "py_func", self.force)
+        try:
+            text = inspect.getsource(inspect.getmodule(func))
+        except (OSError, TypeError):
+            text = repr(func)
+        return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+class LawError(Exception):
+    """A law is unknown, broken, or its declaration or constants are invalid."""
+
+
+@dataclasses.dataclass
+class BrokenPlugin:
+    plugin: str
+    law: str | None
+    reason: str
+
+
+@dataclasses.dataclass
+class RegisteredLaw:
+    law: ContactLaw
+    plugin: str  # entry-point name
+    distribution: str  # package that provides it
+    version: str
+
+
+class LawRegistry:
+    """All laws from all installed plugins, plus what failed to load and why."""
+
+    def __init__(self):
+        self._laws: dict[str, RegisteredLaw] = {}
+        self._aliases: dict[str, str] = {}
+        self.broken: list[BrokenPlugin] = []
+        self._current = ("<direct>", "<direct>", "")
+
+    # -- the object plugins receive in minidem_register_laws(registry) -------------
+    def add(self, law: ContactLaw) -> None:
+        plugin, dist, version = self._current
+        problem = _declaration_problem(law)
+        name = getattr(law, "name", None)
+        if problem is None and (name in self._laws or name in self._aliases):
+            owner = self._laws.get(name) or self._laws[self._aliases[name]]
+            problem = f"name '{name}' is already taken by plugin '{owner.plugin}' ({owner.distribution})"
+        if problem is not None:
+            self.broken.append(BrokenPlugin(plugin, name if isinstance(name, str) else None, problem))
+            return
+        self._laws[law.name] = RegisteredLaw(law, plugin, dist, version)
+        for alias in law.aliases:
+            self._aliases.setdefault(alias.lower(), law.name)
+
+    # -- lookup -------------------------------------------------------------------
+    def names(self) -> list[str]:
+        return sorted(self._laws)
+
+    def entries(self) -> list[RegisteredLaw]:
+        return [self._laws[n] for n in self.names()]
+
+    def entry(self, name: str) -> RegisteredLaw:
+        key = name.lower() if isinstance(name, str) else name
+        key = self._aliases.get(key, key)
+        if key in self._laws:
+            return self._laws[key]
+        for b in self.broken:
+            if b.law == name:
+                raise LawError(f"law '{name}' from plugin '{b.plugin}' is broken: {b.reason}")
+        candidates = self.names() + sorted(self._aliases)
+        close = difflib.get_close_matches(str(name), candidates, n=1)
+        hint = f" Did you mean '{close[0]}'?" if close else ""
+        raise LawError(f"unknown contact law '{name}'.{hint} Available: {', '.join(self.names())}")
+
+    def get(self, name: str) -> ContactLaw:
+        return self.entry(name).law
+
+    def mark_broken(self, plugin: str, law: str | None, reason: str) -> None:
+        """Record a law that failed later (e.g. at compile time) so it is listed as broken."""
+        self.broken.append(BrokenPlugin(plugin, law, reason))
+
+
+def _declaration_problem(law) -> str | None:
+    if not isinstance(law, ContactLaw):
+        return f"registry.add() expects a minidem.laws.ContactLaw, got {type(law).__name__}"
+    if not isinstance(law.name, str) or not _NAME_PATTERN.match(law.name):
+        return f"law name {law.name!r} is not a lower-case identifier"
+    if not isinstance(law.description, str) or not law.description.strip():
+        return "description must be a non-empty string"
+    for field, kind in (("parameters", Parameter), ("history", HistorySlot)):
+        items = getattr(law, field)
+        if not isinstance(items, tuple) or not all(isinstance(x, kind) for x in items):
+            return f"'{field}' must be a tuple of minidem.laws.{kind.__name__}"
+    names = [p.name for p in law.parameters]
+    if len(set(names)) != len(names):
+        return "parameter names are not unique"
+    for p in law.parameters:
+        if p.default is not None and p.check(p.default):
+            return f"default of parameter '{p.name}' {p.check(p.default)}"
+    if not isinstance(law.constants, tuple) or not all(isinstance(c, str) for c in law.constants):
+        return "'constants' must be a tuple of names"
+    if not callable(law.prepare):
+        return "'prepare' is not callable"
+    if not hasattr(law.force, "py_func"):
+        return "'force' is not a numba-compiled function (decorate it with @numba.njit)"
+    func = law.force.py_func
+    if "<locals>" in func.__qualname__ or func.__module__ == "__main__":
+        return "'force' must be defined at module level in an importable module"
+    return None
+
+
+def _distribution_of(entry_point) -> tuple[str, str]:
+    dist = getattr(entry_point, "dist", None)
+    if dist is None:
+        return "<unknown>", ""
+    return dist.metadata["Name"], dist.version
+
+
+def load_registry(extra_plugins: tuple = ()) -> LawRegistry:
+    """Discover every plugin of the ``minidem`` entry-point group and collect its laws.
+
+    Unlike pluggy's ``load_setuptools_entrypoints``, a plugin that fails to import or
+    raises while registering is caught, recorded by name in ``registry.broken`` and does
+    not stop the others. ``extra_plugins`` (objects or modules implementing hooks) serve
+    tests and embedding applications.
+    """
+    registry = LawRegistry()
+    manager = pluggy.PluginManager(hookspecs.PROJECT_NAME)
+    manager.add_hookspecs(hookspecs)
+    plugins = []
+    for ep in sorted(importlib.metadata.entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
+        dist, version = _distribution_of(ep)
+        try:
+            plugins.append((ep.name, dist, version, ep.load()))
+        except Exception as exc:  # noqa: BLE001 - any failure of a plugin is reported, never fatal
+            registry.broken.append(BrokenPlugin(f"{ep.name} ({dist})", None, _one_line(exc)))
+    for index, obj in enumerate(extra_plugins):
+        plugins.append((getattr(obj, "__name__", f"extra{index}"), "<in-process>", "", obj))
+    for plugin_name, dist, version, obj in plugins:
+        try:
+            manager.register(obj, name=plugin_name)
+        except Exception as exc:  # noqa: BLE001
+            registry.broken.append(BrokenPlugin(plugin_name, None, f"invalid hook implementation: {_one_line(exc)}"))
+            continue
+        impls = [i for i in manager.hook.minidem_register_laws.get_hookimpls() if i.plugin is obj]
+        for impl in impls:
+            registry._current = (plugin_name, dist, version)
+            try:
+                impl.function(registry=registry)
+            except Exception as exc:  # noqa: BLE001
+                registry.broken.append(BrokenPlugin(plugin_name, None, f"minidem_register_laws raised {_one_line(exc)}"))
+        registry._current = ("<direct>", "<direct>", "")
+    return registry
+
+
+def _one_line(exc: BaseException) -> str:
+    where = traceback.extract_tb(exc.__traceback__)[-1] if exc.__traceback__ else None
+    at = f" (at {where.filename}:{where.lineno})" if where else ""
+    return f"{type(exc).__name__}: {exc}{at}"
+
+
+_REGISTRY: LawRegistry | None = None
+
+
+def registry() -> LawRegistry:
+    """The process-wide registry, loaded on first use."""
+    global _REGISTRY
+    if _REGISTRY is None:
+        _REGISTRY = load_registry()
+    return _REGISTRY
+
+
+def law_contact_time(law: ContactLaw, pair: ContactPair, constants: Mapping[str, float],
+                     effective_radius: float, effective_mass: float, normal_speed: float) -> float:
+    """The law's normal-impact duration (its own ``contact_time`` or Hertz, eq 13)."""
+    if law.contact_time is not None:
+        return float(law.contact_time(pair, constants, effective_radius, effective_mass, normal_speed))
+    return hertz_contact_time(pair.effective_modulus, effective_radius, effective_mass, normal_speed)

@@ -1,0 +1,511 @@
+"""Scenario files: TOML -> overrides -> validated :class:`Scene`.
+
+Every key a scenario may hold is declared once in ``SCHEMA`` (type, unit, default,
+bounds, meaning); validation, the error messages and the scenario reference in
+``docs/scenario-reference.md`` (``minidem docs``) all come from it, so they cannot
+drift apart. Nothing is compiled or run here.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import difflib
+import math
+import tomllib
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+class ScenarioError(Exception):
+    """Bad input: the CLI prints the message and exits with code 2."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Key:
+    name: str
+    kind: str  # float, int, str, bool, vec3, float_or_auto, choice
+    default: Any
+    unit: str
+    description: str
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    choices: tuple = ()
+    required: bool = False
+
+    def bounds_text(self) -> str:
+        if self.kind == "choice":
+            return " | ".join(f'"{c}"' for c in self.choices)
+        if self.low is None and self.high is None:
+            return ""
+        lo = "-inf" if self.low is None else f"{self.low:g}"
+        hi = "inf" if self.high is None else f"{self.high:g}"
+        return f"{'(' if self.low_open else '['}{lo}, {hi}{']' if self.high is not None else ')'}"
+
+
+REQUIRED = object()
+
+# section -> (kind of section, keys, description). "table": one table; "tables": named
+# sub-tables ([materials.NAME]); "array": array of tables ([[walls]]); "open": keys
+# validated elsewhere (the law's parameters in [contact]).
+SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
+    "materials": ("tables", (
+        Key("youngs_modulus", "float", REQUIRED, "Pa", "Young's modulus E", low=0.0, low_open=True),
+        Key("poisson_ratio", "float", REQUIRED, "-", "Poisson ratio nu; (-1, 0.5] is physical, up to 1 is "
+            "accepted with a warning (the paper's kappa studies use nu = 2/3 and 5/6)", low=-1.0, high=1.0,
+            low_open=True),
+        Key("density", "float", REQUIRED, "kg/m^3", "mass density", low=0.0, low_open=True),
+    ), "Materials by name: `[materials.glass]`. Walls and particles refer to them by name."),
+    "contact": ("open", (
+        Key("law", "str", REQUIRED, "", "contact law name or alias (`minidem laws` lists them)"),
+    ), "The contact law and its parameters (friction included); every other key is a parameter "
+       "of the chosen law, checked against its declaration (see docs/laws.md)."),
+    "walls": ("array", (
+        Key("type", "choice", "plane", "", "wall shape", choices=("plane",)),
+        Key("point", "vec3", (0.0, 0.0, 0.0), "m", "a point of the plane"),
+        Key("normal", "vec3", REQUIRED, "-", "normal pointing to the side the spheres are on (normalised)"),
+        Key("material", "str", REQUIRED, "", "material name"),
+    ), "Infinite plane walls, one `[[walls]]` table each."),
+    "particles": ("array", (
+        Key("position", "vec3", REQUIRED, "m", "centre"),
+        Key("velocity", "vec3", (0.0, 0.0, 0.0), "m/s", "initial velocity"),
+        Key("angular_velocity", "vec3", (0.0, 0.0, 0.0), "rad/s", "initial angular velocity"),
+        Key("radius", "float", REQUIRED, "m", "sphere radius", low=0.0, low_open=True),
+        Key("material", "str", REQUIRED, "", "material name"),
+    ), "Individual spheres, one `[[particles]]` table each."),
+    "impact": ("table", (
+        Key("material", "str", REQUIRED, "", "material of the sphere"),
+        Key("radius", "float", REQUIRED, "m", "sphere radius", low=0.0, low_open=True),
+        Key("speed", "float", REQUIRED, "m/s", "impact speed Vi", low=0.0, low_open=True),
+        Key("angle_deg", "float", 0.0, "deg", "impact angle from the wall normal", low=0.0, high=90.0),
+        Key("wall", "int", 0, "-", "index of the wall hit (in the order of [[walls]])", low=0),
+        Key("spin", "float", 0.0, "rad/s", "initial spin about the axis n x t (n wall normal, t "
+            "tangential direction of travel)"),
+        Key("tangent", "vec3", None, "-", "tangential direction of travel; default: the first of x, y, z "
+            "not parallel to the normal, made orthogonal to it"),
+    ), "One sphere placed touching a wall (zero overlap at t = 0) with velocity Vi at angle_deg: "
+       "the paper's oblique impact. Rebound measures (en, et, x, y1, y2) are reported for it."),
+    "run": ("table", (
+        Key("dt", "float_or_auto", "auto", "s", "time step, or \"auto\": contact_time / steps_per_contact",
+            low=0.0, low_open=True),
+        Key("steps_per_contact", "int", 2000, "-", "steps per normal-impact duration when dt = \"auto\"",
+            low=20),
+        Key("stop", "choice", "separation", "", "\"separation\": stop when the last contact ends; "
+            "\"time\": run to end_time", choices=("separation", "time")),
+        Key("end_time", "float", None, "s", "simulated time to run (required for stop = \"time\"; "
+            "a safety limit otherwise, default 100 contact times)", low=0.0, low_open=True),
+        Key("gravity", "vec3", (0.0, 0.0, 0.0), "m/s^2", "gravitational acceleration"),
+    ), "Run control."),
+    "output": ("table", (
+        Key("directory", "str", None, "", "output directory (relative to the working directory); "
+            "default out/<scenario file stem>; `--out` overrides"),
+        Key("trace", "bool", False, "", "write trace.csv: the probed contact (particle 0 with the impact "
+            "wall) at every step"),
+    ), "What is written where."),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Material:
+    name: str
+    youngs_modulus: float
+    poisson_ratio: float
+    density: float
+
+
+@dataclasses.dataclass
+class Impact:
+    speed: float
+    angle_deg: float
+    wall: int
+    normal: np.ndarray
+    tangent: np.ndarray
+
+
+@dataclasses.dataclass
+class Scene:
+    """A validated scenario: SI units, structure-of-arrays, float64."""
+
+    source: str
+    materials: list[Material]
+    law_name: str
+    law_parameters: dict[str, Any]
+    position: np.ndarray
+    velocity: np.ndarray
+    angular_velocity: np.ndarray
+    radius: np.ndarray
+    particle_material: np.ndarray
+    wall_point: np.ndarray
+    wall_normal: np.ndarray
+    wall_material: np.ndarray
+    dt: float | None
+    steps_per_contact: int
+    stop: str
+    end_time: float | None
+    gravity: np.ndarray
+    output_directory: Path
+    trace: bool
+    impact: Impact | None = None
+    raw: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def n_particles(self) -> int:
+        return self.radius.shape[0]
+
+    @property
+    def mass(self) -> np.ndarray:
+        density = np.array([m.density for m in self.materials])[self.particle_material]
+        return 4.0 / 3.0 * math.pi * self.radius**3 * density
+
+    @property
+    def inertia(self) -> np.ndarray:
+        return 0.4 * self.mass * self.radius**2
+
+
+# ---------------------------------------------------------------------------------
+# reading and overriding
+# ---------------------------------------------------------------------------------
+def read_toml(path: str | Path) -> dict:
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise ScenarioError(f"{path}: no such scenario file") from None
+    except OSError as exc:
+        raise ScenarioError(f"{path}: cannot read: {exc.strerror}") from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{path}: TOML syntax error: {exc}") from None
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """'impact.angle_deg=30' -> (['impact', 'angle_deg'], 30.0). The value is read as a
+    TOML value when it is one (numbers, booleans, arrays, quoted strings), else as a bare string."""
+    if "=" not in text:
+        raise ScenarioError(f"--set {text!r}: expected KEY=VALUE, e.g. --set impact.angle_deg=30")
+    key, _, value_text = text.partition("=")
+    key = key.strip()
+    if not key or any(not part for part in key.split(".")):
+        raise ScenarioError(f"--set {text!r}: empty key part in {key!r}")
+    try:
+        value = tomllib.loads(f"v = {value_text.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = value_text.strip()
+    return key.split("."), value
+
+
+def apply_overrides(data: dict, overrides: list[str]) -> dict:
+    data = copy.deepcopy(data)
+    for text in overrides:
+        path, value = parse_override(text)
+        node = data
+        for depth, part in enumerate(path[:-1]):
+            if isinstance(node, list):
+                try:
+                    node = node[int(part)]
+                except (ValueError, IndexError):
+                    raise ScenarioError(f"--set {text!r}: '{'.'.join(path[:depth + 1])}' is not a valid "
+                                        f"index (the list has {len(node)} entries)") from None
+                continue
+            node = node.setdefault(part, {})
+            if not isinstance(node, (dict, list)):
+                raise ScenarioError(f"--set {text!r}: '{'.'.join(path[:depth + 1])}' is a value, not a table")
+        if isinstance(node, list):
+            try:
+                node[int(path[-1])] = value
+            except (ValueError, IndexError):
+                raise ScenarioError(f"--set {text!r}: bad list index {path[-1]!r}") from None
+        else:
+            node[path[-1]] = value
+    return data
+
+
+# ---------------------------------------------------------------------------------
+# validation
+# ---------------------------------------------------------------------------------
+class _Errors:
+    def __init__(self, source: str):
+        self.source = source
+        self.messages: list[str] = []
+
+    def add(self, where: str, message: str) -> None:
+        self.messages.append(f"{where}: {message}" if where else message)
+
+    def raise_if_any(self) -> None:
+        if self.messages:
+            lines = "\n".join(f"  - {m}" for m in self.messages)
+            raise ScenarioError(f"{self.source}: invalid scenario\n{lines}")
+
+
+def _did_you_mean(name: str, valid) -> str:
+    close = difflib.get_close_matches(name, list(valid), n=1)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+def _check_value(key: Key, value: Any, where: str, errors: _Errors) -> Any:
+    def bad(expected):
+        errors.add(where, f"expected {expected}, got {value!r}")
+
+    if key.kind in ("float", "float_or_auto"):
+        if key.kind == "float_or_auto" and value == "auto":
+            return None
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return bad("a number" + (' or "auto"' if key.kind == "float_or_auto" else "") + f" ({key.unit})")
+        value = float(value)
+        if not math.isfinite(value):
+            return bad("a finite number")
+        if key.low is not None and (value < key.low or (key.low_open and value == key.low)):
+            errors.add(where, f"must be {'>' if key.low_open else '>='} {key.low:g} {key.unit}, got {value:g}")
+        if key.high is not None and value > key.high:
+            errors.add(where, f"must be <= {key.high:g} {key.unit}, got {value:g}")
+        return value
+    if key.kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            return bad("an integer")
+        if key.low is not None and value < key.low:
+            errors.add(where, f"must be >= {key.low:g}, got {value}")
+        return value
+    if key.kind == "bool":
+        return value if isinstance(value, bool) else bad("true or false")
+    if key.kind in ("str", "choice"):
+        if not isinstance(value, str):
+            return bad("a string")
+        if key.kind == "choice" and value not in key.choices:
+            errors.add(where, f"must be one of {', '.join(repr(c) for c in key.choices)}, got {value!r}"
+                       + _did_you_mean(value, key.choices))
+        return value
+    if key.kind == "vec3":
+        if (not isinstance(value, list) or len(value) != 3
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value)):
+            return bad(f"a list of 3 numbers ({key.unit})")
+        array = np.array(value, dtype=np.float64)
+        if not np.all(np.isfinite(array)):
+            return bad("finite numbers")
+        return array
+    raise AssertionError(key.kind)
+
+
+def _check_table(table: Any, keys: tuple[Key, ...], where: str, errors: _Errors, open_keys=False) -> dict:
+    if not isinstance(table, dict):
+        errors.add(where, f"expected a table, got {type(table).__name__}")
+        return {}
+    by_name = {k.name: k for k in keys}
+    out = {}
+    for name, value in table.items():
+        if name not in by_name:
+            if not open_keys:
+                errors.add(f"{where}.{name}", "unknown key" + _did_you_mean(name, by_name)
+                           + f"; valid keys: {', '.join(by_name)}")
+            continue
+        out[name] = _check_value(by_name[name], value, f"{where}.{name}", errors)
+    for key in keys:
+        if key.name not in table:
+            if key.default is REQUIRED:
+                errors.add(f"{where}.{key.name}", f"missing required key ({key.description}"
+                           + (f", {key.unit}" if key.unit and key.unit != "-" else "") + ")")
+            else:
+                out[key.name] = np.array(key.default, dtype=np.float64) if key.kind == "vec3" and key.default is not None else key.default
+    return out
+
+
+def load_scene(path: str | Path, overrides: list[str] = (), output_directory: str | Path | None = None) -> Scene:
+    data = apply_overrides(read_toml(path), list(overrides))
+    return build_scene(data, str(path), output_directory)
+
+
+def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -> Scene:
+    from minidem import laws
+
+    errors = _Errors(source)
+    for section in data:
+        if section not in SCHEMA and section != "sweep":
+            errors.add(section, "unknown section" + _did_you_mean(section, SCHEMA)
+                       + f"; valid sections: {', '.join(SCHEMA)}")
+
+    # materials
+    materials: list[Material] = []
+    raw_materials = data.get("materials", {})
+    if not isinstance(raw_materials, dict) or not raw_materials:
+        errors.add("materials", "at least one material is needed, e.g. [materials.glass] with "
+                   "youngs_modulus, poisson_ratio, density")
+        raw_materials = {}
+    for name, table in raw_materials.items():
+        values = _check_table(table, SCHEMA["materials"][1], f"materials.{name}", errors)
+        nu = values.get("poisson_ratio")
+        if isinstance(nu, float) and nu > 0.5:
+            warnings.warn(f"{source}: materials.{name}.poisson_ratio = {nu:g} > 0.5 is not physical; "
+                          "accepted for stiffness-ratio studies (the paper's Table 1)", stacklevel=2)
+        if all(isinstance(values.get(k), float) for k in ("youngs_modulus", "poisson_ratio", "density")):
+            materials.append(Material(name, values["youngs_modulus"], values["poisson_ratio"], values["density"]))
+    material_index = {m.name: i for i, m in enumerate(materials)}
+
+    def material_of(name, where):
+        if name in material_index:
+            return material_index[name]
+        if isinstance(name, str) and name in raw_materials:
+            return -1  # invalid material, already reported
+        if isinstance(name, str):
+            errors.add(where, f"unknown material '{name}'" + _did_you_mean(name, raw_materials)
+                       + f"; defined: {', '.join(raw_materials) or 'none'}")
+        return -1
+
+    # contact law
+    contact = data.get("contact")
+    law_name, law_parameters = None, {}
+    if not isinstance(contact, dict):
+        errors.add("contact", 'missing [contact] section with at least law = "..." and friction')
+    else:
+        _check_table(contact, SCHEMA["contact"][1], "contact", errors, open_keys=True)
+        if isinstance(contact.get("law"), str):
+            try:
+                law = laws.registry().get(contact["law"])
+            except laws.LawError as exc:
+                errors.add("contact.law", str(exc))
+            else:
+                law_name = law.name
+                given = {k: v for k, v in contact.items() if k != "law"}
+                law_parameters, law_errors = law.resolve_parameters(given)
+                for message in law_errors:
+                    errors.add("contact", message)
+
+    # walls
+    walls = data.get("walls", [])
+    if not isinstance(walls, list):
+        errors.add("walls", "expected an array of tables: [[walls]]")
+        walls = []
+    wall_point, wall_normal, wall_material = [], [], []
+    for index, table in enumerate(walls):
+        where = f"walls[{index}]"
+        values = _check_table(table, SCHEMA["walls"][1], where, errors)
+        normal = values.get("normal")
+        if isinstance(normal, np.ndarray):
+            length = float(np.linalg.norm(normal))
+            if length == 0.0:
+                errors.add(f"{where}.normal", "must not be the zero vector")
+            else:
+                normal = normal / length
+        if isinstance(normal, np.ndarray) and isinstance(values.get("point"), np.ndarray):
+            wall_point.append(values["point"])
+            wall_normal.append(normal)
+            wall_material.append(material_of(values.get("material"), f"{where}.material"))
+
+    # particles, and the impact helper
+    position, velocity, spin, radius, particle_material = [], [], [], [], []
+    for index, table in enumerate(data.get("particles", []) if isinstance(data.get("particles", []), list) else []):
+        where = f"particles[{index}]"
+        values = _check_table(table, SCHEMA["particles"][1], where, errors)
+        if all(k in values and values[k] is not None for k in ("position", "radius", "velocity", "angular_velocity")):
+            position.append(values["position"])
+            velocity.append(values["velocity"])
+            spin.append(values["angular_velocity"])
+            radius.append(values["radius"])
+            particle_material.append(material_of(values.get("material"), f"{where}.material"))
+    if "particles" in data and not isinstance(data["particles"], list):
+        errors.add("particles", "expected an array of tables: [[particles]]")
+
+    impact = None
+    if "impact" in data:
+        values = _check_table(data["impact"], SCHEMA["impact"][1], "impact", errors)
+        wall = values.get("wall")
+        if isinstance(wall, int) and not 0 <= wall < len(wall_normal):
+            errors.add("impact.wall", f"wall index {wall} does not exist: the scenario has "
+                       f"{len(wall_normal)} valid wall(s) (an [[walls]] plane is needed)")
+        elif all(isinstance(values.get(k), float) for k in ("radius", "speed", "angle_deg", "spin")):
+            if values["angle_deg"] >= 90.0:
+                errors.add("impact.angle_deg", "must be < 90 deg (90 is parallel to the wall: no impact)")
+            normal = wall_normal[wall]
+            tangent = _tangent(normal, values.get("tangent"), errors)
+            if tangent is not None:
+                theta = math.radians(values["angle_deg"])
+                # index 0: the impact sphere is particle 0, the one the rebound is measured on
+                position.insert(0, wall_point[wall] + values["radius"] * normal)
+                velocity.insert(0, values["speed"] * (math.sin(theta) * tangent - math.cos(theta) * normal))
+                spin.insert(0, values["spin"] * np.cross(normal, tangent))
+                radius.insert(0, values["radius"])
+                particle_material.insert(0, material_of(values.get("material"), "impact.material"))
+                impact = Impact(values["speed"], values["angle_deg"], wall, normal, tangent)
+    if not radius and not errors.messages:
+        errors.add("", "the scene has no particles: add an [impact] block or [[particles]]")
+
+    run = _check_table(data.get("run", {}), SCHEMA["run"][1], "run", errors)
+    if run.get("stop") == "time" and run.get("end_time") is None:
+        errors.add("run.end_time", 'required when run.stop = "time"')
+    output = _check_table(data.get("output", {}), SCHEMA["output"][1], "output", errors)
+    errors.raise_if_any()
+
+    if output_directory is None:
+        output_directory = output.get("directory") or Path("out") / Path(source).stem
+    scene = Scene(
+        source=source,
+        materials=materials,
+        law_name=law_name,
+        law_parameters=law_parameters,
+        position=np.array(position, dtype=np.float64).reshape(-1, 3),
+        velocity=np.array(velocity, dtype=np.float64).reshape(-1, 3),
+        angular_velocity=np.array(spin, dtype=np.float64).reshape(-1, 3),
+        radius=np.array(radius, dtype=np.float64),
+        particle_material=np.array(particle_material, dtype=np.int64),
+        wall_point=np.array(wall_point, dtype=np.float64).reshape(-1, 3),
+        wall_normal=np.array(wall_normal, dtype=np.float64).reshape(-1, 3),
+        wall_material=np.array(wall_material, dtype=np.int64),
+        dt=run["dt"],
+        steps_per_contact=run["steps_per_contact"],
+        stop=run["stop"],
+        end_time=run["end_time"],
+        gravity=run["gravity"],
+        output_directory=Path(output_directory),
+        trace=output["trace"],
+        impact=impact,
+        raw=data,
+    )
+    _check_geometry(scene)
+    return scene
+
+
+def _tangent(normal: np.ndarray, given, errors: _Errors):
+    if given is not None:
+        tangent = np.asarray(given, dtype=np.float64) - np.dot(given, normal) * normal
+        if np.linalg.norm(tangent) < 1e-12:
+            errors.add("impact.tangent", "must not be parallel to the wall normal")
+            return None
+        return tangent / np.linalg.norm(tangent)
+    for axis in np.eye(3):
+        tangent = axis - np.dot(axis, normal) * normal
+        if np.linalg.norm(tangent) > 1e-6:
+            return tangent / np.linalg.norm(tangent)
+    raise AssertionError("no tangent for a unit normal")
+
+
+def _check_geometry(scene: Scene) -> None:
+    errors = _Errors(scene.source)
+    for w in range(scene.wall_point.shape[0]):
+        overlap = scene.radius - (scene.position - scene.wall_point[w]) @ scene.wall_normal[w]
+        for i in np.flatnonzero(overlap >= scene.radius):
+            errors.add(f"particle {i}", f"centre is on or behind wall {w} (the plane through "
+                       f"{scene.wall_point[w].tolist()} with normal {scene.wall_normal[w].tolist()})")
+    errors.raise_if_any()
+
+
+# ---------------------------------------------------------------------------------
+# reference documentation, generated from SCHEMA
+# ---------------------------------------------------------------------------------
+def reference_markdown() -> str:
+    lines = ["# Scenario file reference", "",
+             "Generated from `minidem/scenario.py` (`minidem docs scenario`); every key, unit, default "
+             "and bound below is the one the validator applies. Units are SI throughout.", ""]
+    for section, (shape, keys, description) in SCHEMA.items():
+        header = {"tables": f"[{section}.NAME]", "array": f"[[{section}]]"}.get(shape, f"[{section}]")
+        lines += [f"## `{header}`", "", description, "", "| key | type | unit | default | bounds | meaning |",
+                  "|---|---|---|---|---|---|"]
+        for key in keys:
+            default = "required" if key.default is REQUIRED else ("-" if key.default is None else f"`{key.default}`")
+            kind = key.kind.replace("float_or_auto", 'float or "auto"').replace("vec3", "[x, y, z]")
+            lines.append(f"| `{key.name}` | {kind} | {key.unit or ''} | {default} | {key.bounds_text()} "
+                         f"| {key.description} |")
+        lines.append("")
+    return "\n".join(lines)
