@@ -47,8 +47,11 @@ def print_summary(summary: dict, out=sys.stdout) -> None:
 
 
 def command_run(args) -> int:
-    from minidem import analysis, output, scenario, simulation
+    from minidem import analysis, output, scenario, simulation, sweep
 
+    data = scenario.read_toml(args.file)
+    if sweep.has_sweep(data):
+        return sweep.command(args, data)
     scene = scenario.load_scene(args.file, args.set, args.out)
     sim = simulation.Simulation(scene)
     if not args.quiet:
@@ -114,6 +117,12 @@ def command_docs(args) -> int:
     return EXIT_OK
 
 
+def command_bench(args) -> int:
+    from minidem import bench
+
+    return bench.command(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from minidem import __version__
 
@@ -128,6 +137,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                      help="override a scenario value, dotted keys (repeatable): --set impact.angle_deg=30")
     run.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    run.add_argument("--workers", type=int, default=None, metavar="N",
+                     help="worker processes for a [sweep] scenario (default: sweep.workers; 0: one per CPU)")
     run.set_defaults(handler=command_run)
 
     show = sub.add_parser("laws", help="list installed contact laws and broken plugins")
@@ -137,6 +148,14 @@ def build_parser() -> argparse.ArgumentParser:
     docs = sub.add_parser("docs", help="print the scenario-file reference (markdown)")
     docs.add_argument("--write", type=Path, help="write it to this file instead")
     docs.set_defaults(handler=command_docs)
+
+    bench = sub.add_parser("bench", help="measure error against the reference solution and run time; "
+                           "writes docs/benchmarks.md and docs/figures/")
+    bench.add_argument("--quick", action="store_true", help="a small subset (CI smoke run)")
+    bench.add_argument("--only", action="append", choices=("single-impact", "work-precision", "sweep-timing"),
+                       help="run only this section (repeatable)")
+    bench.add_argument("--docs", type=Path, default=None, help="docs directory to write (default: the project's)")
+    bench.set_defaults(handler=command_bench)
     return parser
 
 

@@ -63,3 +63,86 @@ def rotate_history_into_plane(history, vector_offsets, nx, ny, nz):
         after = math.sqrt(hx * hx + hy * hy + hz * hz)
         scale = before / after if after > 0.0 else 0.0
         history[o], history[o + 1], history[o + 2] = hx * scale, hy * scale, hz * scale
+
+
+@numba.njit(cache=True, inline="always")
+def pair_contact_velocity(vix, viy, viz, wix, wiy, wiz, vjx, vjy, vjz, wjx, wjy, wjz,
+                          lever_i, lever_j, nx, ny, nz):
+    """Velocity of i's contact point relative to j's, for a normal n pointing from j to i.
+
+    i's contact point is at -lever_i n from its centre, j's at +lever_j n from its own;
+    with lever_i + lever_j equal to the centre distance both are the same point, so the
+    contact torques balance the moment of the contact force about the pair and angular
+    momentum is conserved. Returns (approach rate along -n, tangential velocity).
+    """
+    ax, ay, az = cross(wix, wiy, wiz, -lever_i * nx, -lever_i * ny, -lever_i * nz)
+    bx, by, bz = cross(wjx, wjy, wjz, lever_j * nx, lever_j * ny, lever_j * nz)
+    cx, cy, cz = vix + ax - vjx - bx, viy + ay - vjy - by, viz + az - vjz - bz
+    along = cx * nx + cy * ny + cz * nz
+    return -along, (cx - along * nx, cy - along * ny, cz - along * nz)
+
+
+@numba.njit(cache=True, inline="always")
+def cylinder_overlap(px, py, pz, radius, base, axis, cylinder_radius, length, c):
+    """Overlap of a sphere with the inside surface of a finite cylinder, and the normal
+    (from the wall to the sphere, i.e. towards the axis).
+
+    The surface spans axial coordinates [0, length] from ``base`` along the unit
+    ``axis``; beyond its ends there is no contact (an open silo). Returns
+    (overlap, nx, ny, nz); the overlap is <= 0 when not in contact.
+    """
+    rx, ry, rz = px - base[c, 0], py - base[c, 1], pz - base[c, 2]
+    s = rx * axis[c, 0] + ry * axis[c, 1] + rz * axis[c, 2]
+    if s < 0.0 or s > length[c]:
+        return -1.0, 0.0, 0.0, 1.0
+    rx, ry, rz = rx - s * axis[c, 0], ry - s * axis[c, 1], rz - s * axis[c, 2]
+    rho = math.sqrt(rx * rx + ry * ry + rz * rz)
+    if rho == 0.0:
+        return radius - cylinder_radius, 0.0, 0.0, 1.0
+    return radius + rho - cylinder_radius, -rx / rho, -ry / rho, -rz / rho
+
+
+# feature of a triangle that holds the closest point
+FACE, EDGE, VERTEX = 0, 1, 2
+
+
+@numba.njit(cache=True, inline="always")
+def triangle_closest_point(px, py, pz, tri, t):
+    """Closest point of triangle ``tri[t]`` (3 vertices x 3) to p and the feature it lies
+    on (FACE interior, an EDGE or a VERTEX): Ericson, Real-Time Collision Detection,
+    section 5.1.5 (Voronoi regions of the triangle)."""
+    ax, ay, az = tri[t, 0, 0], tri[t, 0, 1], tri[t, 0, 2]
+    abx, aby, abz = tri[t, 1, 0] - ax, tri[t, 1, 1] - ay, tri[t, 1, 2] - az
+    acx, acy, acz = tri[t, 2, 0] - ax, tri[t, 2, 1] - ay, tri[t, 2, 2] - az
+    apx, apy, apz = px - ax, py - ay, pz - az
+    d1 = abx * apx + aby * apy + abz * apz
+    d2 = acx * apx + acy * apy + acz * apz
+    if d1 <= 0.0 and d2 <= 0.0:
+        return ax, ay, az, VERTEX
+    bpx, bpy, bpz = px - tri[t, 1, 0], py - tri[t, 1, 1], pz - tri[t, 1, 2]
+    d3 = abx * bpx + aby * bpy + abz * bpz
+    d4 = acx * bpx + acy * bpy + acz * bpz
+    if d3 >= 0.0 and d4 <= d3:
+        return tri[t, 1, 0], tri[t, 1, 1], tri[t, 1, 2], VERTEX
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        v = d1 / (d1 - d3)
+        return ax + v * abx, ay + v * aby, az + v * abz, EDGE
+    cpx, cpy, cpz = px - tri[t, 2, 0], py - tri[t, 2, 1], pz - tri[t, 2, 2]
+    d5 = abx * cpx + aby * cpy + abz * cpz
+    d6 = acx * cpx + acy * cpy + acz * cpz
+    if d6 >= 0.0 and d5 <= d6:
+        return tri[t, 2, 0], tri[t, 2, 1], tri[t, 2, 2], VERTEX
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        w = d2 / (d2 - d6)
+        return ax + w * acx, ay + w * acy, az + w * acz, EDGE
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        bx, by, bz = tri[t, 1, 0], tri[t, 1, 1], tri[t, 1, 2]
+        return bx + w * (tri[t, 2, 0] - bx), by + w * (tri[t, 2, 1] - by), bz + w * (tri[t, 2, 2] - bz), EDGE
+    denom = 1.0 / (va + vb + vc)
+    v = vb * denom
+    w = vc * denom
+    return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w, FACE

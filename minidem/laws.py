@@ -358,8 +358,10 @@ def load_registry(extra_plugins: tuple = ()) -> LawRegistry:
     manager = pluggy.PluginManager(hookspecs.PROJECT_NAME)
     manager.add_hookspecs(hookspecs)
     plugins = []
-    for ep in sorted(importlib.metadata.entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
-        dist, version = _distribution_of(ep)
+    # minidem's own laws first, so a third-party plugin can never take a built-in name
+    # (whichever plugin registers a name first keeps it); the others in a fixed order
+    found = [(_distribution_of(ep), ep) for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)]
+    for (dist, version), ep in sorted(found, key=lambda item: (item[0][0] != hookspecs.PROJECT_NAME, item[1].name)):
         try:
             plugins.append((ep.name, dist, version, ep.load()))
         except Exception as exc:  # noqa: BLE001 - any failure of a plugin is reported, never fatal

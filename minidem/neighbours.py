@@ -20,6 +20,8 @@ import time
 import numba
 import numpy as np
 
+from minidem.contact import triangle_closest_point
+
 # Cells per particle allowed before the cell size is enlarged. Bounds memory by O(N)
 # when a few far-apart particles would otherwise span a huge, almost empty grid.
 MAX_CELLS_PER_PARTICLE = 8
@@ -311,3 +313,111 @@ def benchmark_scaling(n_values=(2_000, 20_000, 200_000), thread_counts=(1, 2),
     finally:
         numba.set_num_threads(previous_threads)
     return times
+
+
+# ---------------------------------------------------------------------------------
+# per-contact state across rebuilds
+# ---------------------------------------------------------------------------------
+@numba.njit(cache=True, parallel=True)
+def carry_history(old_offsets, old_keys, old_history, old_overlap, new_offsets, new_keys):
+    """Per-entry contact state of a rebuilt CSR list, taken over from the old one.
+
+    Both lists hold, per row, ascending keys (partner particles j > i, or triangle
+    ids); a merge of the two sorted rows copies the history and last overlap of every
+    (row, key) present in both. New entries start with zero history and overlap -1
+    (not touching): the Verlet skin guarantees that a pair absent from the old list
+    was not in contact, so no live contact loses its history. Rows are independent,
+    so the result does not depend on the thread count.
+    """
+    n_rows = new_offsets.shape[0] - 1
+    history = np.zeros((new_keys.shape[0], old_history.shape[1]))
+    overlap = np.full(new_keys.shape[0], -1.0)
+    for row in numba.prange(n_rows):
+        a, a_end = old_offsets[row], old_offsets[row + 1]
+        for b in range(new_offsets[row], new_offsets[row + 1]):
+            key = new_keys[b]
+            while a < a_end and old_keys[a] < key:
+                a += 1
+            if a < a_end and old_keys[a] == key:
+                history[b, :] = old_history[a, :]
+                overlap[b] = old_overlap[a]
+    return history, overlap
+
+
+@numba.njit(cache=True)
+def reverse_index(offsets, neighbours, n_particles):
+    """For each particle p, the list entries (i, p) naming it as the partner, in
+    ascending i: the CSR of the transposed half list (a counting sort, O(N + M)).
+
+    The engine adds the reactions of p's pairs in this fixed order, so its force sums
+    are the same whatever the thread count.
+    """
+    reverse_offsets = np.zeros(n_particles + 1, dtype=np.int64)
+    for e in range(neighbours.shape[0]):
+        reverse_offsets[neighbours[e] + 1] += 1
+    for p in range(n_particles):
+        reverse_offsets[p + 1] += reverse_offsets[p]
+    next_slot = reverse_offsets[:-1].copy()
+    entries = np.empty(neighbours.shape[0], dtype=np.int64)
+    for i in range(n_particles):
+        for e in range(offsets[i], offsets[i + 1]):
+            j = neighbours[e]
+            entries[next_slot[j]] = e
+            next_slot[j] += 1
+    return reverse_offsets, entries
+
+
+@numba.njit(cache=True)
+def _triangle_box_distance_squared(p, radius_plus_skin, lower, upper):
+    d = 0.0
+    for axis in range(3):
+        if p[axis] < lower[axis]:
+            d += (lower[axis] - p[axis]) ** 2
+        elif p[axis] > upper[axis]:
+            d += (p[axis] - upper[axis]) ** 2
+    return d
+
+
+@numba.njit(cache=True, parallel=True)
+def mesh_candidates(positions, radii, skin, triangles):
+    """Triangles within r_i + skin of each particle (closest point), as a CSR list of
+    ascending triangle ids; valid for contact detection under the same half-skin
+    displacement rule as :func:`build_pairs`.
+
+    Every particle tests every triangle's bounding box, then the close ones exactly:
+    O(N T) per build, linear in N for a given mesh. Enough for hoppers and silos of up
+    to a few thousand triangles; a cell grid over triangles would remove the T factor.
+    """
+    n_particles, n_triangles = positions.shape[0], triangles.shape[0]
+    lower = np.empty((n_triangles, 3))
+    upper = np.empty((n_triangles, 3))
+    for t in range(n_triangles):
+        for axis in range(3):
+            lower[t, axis] = min(triangles[t, 0, axis], triangles[t, 1, axis], triangles[t, 2, axis])
+            upper[t, axis] = max(triangles[t, 0, axis], triangles[t, 1, axis], triangles[t, 2, axis])
+    counts = np.zeros(n_particles, dtype=np.int64)
+    for p in numba.prange(n_particles):
+        reach = radii[p] + skin
+        for t in range(n_triangles):
+            if _triangle_box_distance_squared(positions[p], reach, lower[t], upper[t]) < reach * reach:
+                cx, cy, cz, feature = triangle_closest_point(positions[p, 0], positions[p, 1], positions[p, 2],
+                                                             triangles, t)
+                d2 = (positions[p, 0] - cx) ** 2 + (positions[p, 1] - cy) ** 2 + (positions[p, 2] - cz) ** 2
+                if d2 < reach * reach:
+                    counts[p] += 1
+    offsets = np.zeros(n_particles + 1, dtype=np.int64)
+    for p in range(n_particles):
+        offsets[p + 1] = offsets[p] + counts[p]
+    found = np.empty(offsets[n_particles], dtype=np.int64)
+    for p in numba.prange(n_particles):
+        reach = radii[p] + skin
+        k = offsets[p]
+        for t in range(n_triangles):
+            if _triangle_box_distance_squared(positions[p], reach, lower[t], upper[t]) < reach * reach:
+                cx, cy, cz, feature = triangle_closest_point(positions[p, 0], positions[p, 1], positions[p, 2],
+                                                             triangles, t)
+                d2 = (positions[p, 0] - cx) ** 2 + (positions[p, 1] - cy) ** 2 + (positions[p, 2] - cz) ** 2
+                if d2 < reach * reach:
+                    found[k] = t
+                    k += 1
+    return offsets, found

@@ -65,11 +65,27 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
     ), "The contact law and its parameters (friction included); every other key is a parameter "
        "of the chosen law, checked against its declaration (see docs/laws.md)."),
     "walls": ("array", (
-        Key("type", "choice", "plane", "", "wall shape", choices=("plane",)),
-        Key("point", "vec3", (0.0, 0.0, 0.0), "m", "a point of the plane"),
-        Key("normal", "vec3", REQUIRED, "-", "normal pointing to the side the spheres are on (normalised)"),
+        Key("type", "choice", "plane", "", "wall shape (see minidem/walls.py)",
+            choices=("plane", "box", "cylinder", "mesh")),
         Key("material", "str", REQUIRED, "", "material name"),
-    ), "Infinite plane walls, one `[[walls]]` table each."),
+        Key("point", "vec3", (0.0, 0.0, 0.0), "m", "plane: a point of the plane; cylinder: centre of its base"),
+        Key("normal", "vec3", None, "-", "plane (required): normal pointing to the side the spheres are on "
+            "(normalised)"),
+        Key("lower", "vec3", None, "m", "box (required): lower corner"),
+        Key("upper", "vec3", None, "m", "box (required): upper corner"),
+        Key("open_top", "bool", False, "", "box: leave out the upper z face (5 planes)"),
+        Key("axis", "vec3", (0.0, 0.0, 1.0), "-", "cylinder: axis direction from the base (normalised)"),
+        Key("radius", "float", None, "m", "cylinder (required): inner radius", low=0.0, low_open=True),
+        Key("length", "float", None, "m", "cylinder (required): length along the axis", low=0.0, low_open=True),
+        Key("bottom", "bool", False, "", "cylinder: close the base with a plane"),
+        Key("file", "str", None, "", "mesh (required): STL/OBJ/PLY/VTK surface file, relative to the "
+            "scenario file"),
+        Key("scale", "float", 1.0, "-", "mesh: factor applied to the file's coordinates (e.g. 0.001 for mm)",
+            low=0.0, low_open=True),
+        Key("offset", "vec3", (0.0, 0.0, 0.0), "m", "mesh: shift applied after scaling"),
+    ), "Walls, one `[[walls]]` table each: infinite planes, an axis-aligned box (its 5 or 6 faces as "
+       "planes), the inside of a finite cylinder, or a triangle mesh. [impact].wall counts planes, "
+       "a box adds its planes in the order lower x, upper x, lower y, upper y, lower z, upper z."),
     "particles": ("array", (
         Key("position", "vec3", REQUIRED, "m", "centre"),
         Key("velocity", "vec3", (0.0, 0.0, 0.0), "m/s", "initial velocity"),
@@ -77,6 +93,27 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
         Key("radius", "float", REQUIRED, "m", "sphere radius", low=0.0, low_open=True),
         Key("material", "str", REQUIRED, "", "material name"),
     ), "Individual spheres, one `[[particles]]` table each."),
+    "fill": ("array", (
+        Key("kind", "choice", REQUIRED, "", "generator (see minidem/particles.py)",
+            choices=("lattice", "random", "file")),
+        Key("material", "str", REQUIRED, "", "material name"),
+        Key("radius", "float", None, "m", "lattice, random (required): sphere radius (random: the smallest)",
+            low=0.0, low_open=True),
+        Key("radius_max", "float", None, "m", "random: largest radius (radii uniform in radius..radius_max)",
+            low=0.0, low_open=True),
+        Key("lower", "vec3", None, "m", "lattice, random (required): lower corner of the region"),
+        Key("upper", "vec3", None, "m", "lattice, random (required): upper corner of the region"),
+        Key("spacing", "float", None, "m", "lattice (required): site spacing; first centre at lower + "
+            "spacing/2, filled x fastest, then y, then z", low=0.0, low_open=True),
+        Key("count", "int", None, "-", "number of spheres (random: required; lattice: default all sites)",
+            low=0),
+        Key("jitter", "float", 0.0, "m", "lattice: uniform random x and y shift in [-jitter, jitter]",
+            low=0.0),
+        Key("seed", "int", 12345, "-", "random seed (jitter, random)", low=0),
+        Key("file", "str", None, "", "file (required): CSV (x,y,z,radius[,vx,vy,vz,wx,wy,wz]) or a VTK "
+            "point file with a radius array, relative to the scenario file"),
+        Key("velocity", "vec3", (0.0, 0.0, 0.0), "m/s", "initial velocity (lattice, random)"),
+    ), "Particle generators, one `[[fill]]` table each, added after [[particles]]."),
     "impact": ("table", (
         Key("material", "str", REQUIRED, "", "material of the sphere"),
         Key("radius", "float", REQUIRED, "m", "sphere radius", low=0.0, low_open=True),
@@ -99,13 +136,40 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
         Key("end_time", "float", None, "s", "simulated time to run (required for stop = \"time\"; "
             "a safety limit otherwise, default 100 contact times)", low=0.0, low_open=True),
         Key("gravity", "vec3", (0.0, 0.0, 0.0), "m/s^2", "gravitational acceleration"),
+        Key("skin", "float", None, "m", "Verlet neighbour-list skin; the list is rebuilt when a particle "
+            "has moved skin/2; default: half the largest radius", low=0.0),
+        Key("threads", "int", 0, "-", "threads for the particle loops (0: all numba may use, "
+            "NUMBA_NUM_THREADS); results are bit-for-bit the same for any count", low=0),
     ), "Run control."),
     "output": ("table", (
         Key("directory", "str", None, "", "output directory (relative to the working directory); "
             "default out/<scenario file stem>; `--out` overrides"),
         Key("trace", "bool", False, "", "write trace.csv: the probed contact (particle 0 with the impact "
             "wall) at every step"),
+        Key("vtk", "bool", None, "", "write a ParaView time series (particles.pvd, walls.vtu); default: "
+            "on for scenes without [impact]"),
+        Key("interval", "float", None, "s", "simulated time between VTK frames; default: run.end_time / 50",
+            low=0.0, low_open=True),
+        Key("contacts", "bool", False, "", "also write the contact network (particles_contacts.pvd: lines "
+            "between touching particles with cell array normal_force)"),
     ), "What is written where."),
+    "sweep": ("table", (
+        Key("cases", "table", REQUIRED, "", 'dotted scenario key -> list of values, e.g. {"contact.law" = '
+            '["hmd", "ls"], "impact.angle_deg" = [1.0, 5.0]}; the cases are the cartesian product (first '
+            "key slowest), each the base scenario with those values set (as `--set` would)"),
+        Key("workers", "int", 0, "-", "worker processes (0: one per CPU; `minidem run --workers` overrides)",
+            low=0),
+        Key("keep_traces", "bool", False, "", "write each case's per-step contact trace to "
+            "OUT/traces/case_NNN.csv (as output.trace does for a single run)"),
+        Key("figures", "list", ["y1", "y2", "et"], "", 'PNG figures to draw: "y1", "y2" (against x, with '
+            'the rigid-body lines of eqs 6-8), "et" (against the angle), "force_displacement" (needs '
+            "keep_traces)"),
+        Key("series_labels", "list", None, "", "legend labels, one per combination of the swept keys other "
+            "than impact.angle_deg (default: the values)"),
+        Key("title", "str", None, "", "figure title"),
+    ), "A parameter sweep: `minidem run` runs every case (in parallel) and writes OUT/sweep.csv "
+       "(law, angle_deg, x, y1, y2, et, en, contact_duration_s, energy_ratio, the swept keys, error) and "
+       "the figures. See docs/paper-reproduction.md."),
 }
 
 
@@ -151,6 +215,12 @@ class Scene:
     trace: bool
     impact: Impact | None = None
     raw: dict = dataclasses.field(default_factory=dict)
+    walls: Any = None  # minidem.walls.WallSet: every wall kind (planes also in wall_point...)
+    skin: float | None = None
+    threads: int = 0
+    vtk: bool = False
+    output_interval: float | None = None
+    vtk_contacts: bool = False
 
     @property
     def n_particles(self) -> int:
@@ -259,10 +329,11 @@ def _check_value(key: Key, value: Any, where: str, errors: _Errors) -> Any:
         value = float(value)
         if not math.isfinite(value):
             return bad("a finite number")
+        unit = f" {key.unit}" if key.unit not in ("", "-") else ""
         if key.low is not None and (value < key.low or (key.low_open and value == key.low)):
-            errors.add(where, f"must be {'>' if key.low_open else '>='} {key.low:g} {key.unit}, got {value:g}")
+            errors.add(where, f"must be {'>' if key.low_open else '>='} {key.low:g}{unit}, got {value:g}")
         if key.high is not None and value > key.high:
-            errors.add(where, f"must be <= {key.high:g} {key.unit}, got {value:g}")
+            errors.add(where, f"must be <= {key.high:g}{unit}, got {value:g}")
         return value
     if key.kind == "int":
         if isinstance(value, bool) or not isinstance(value, int):
@@ -279,6 +350,10 @@ def _check_value(key: Key, value: Any, where: str, errors: _Errors) -> Any:
             errors.add(where, f"must be one of {', '.join(repr(c) for c in key.choices)}, got {value!r}"
                        + _did_you_mean(value, key.choices))
         return value
+    if key.kind == "table":
+        return value if isinstance(value, dict) else bad("a table, e.g. {\"impact.angle_deg\" = [1.0, 5.0]}")
+    if key.kind == "list":
+        return value if isinstance(value, list) else bad("a list")
     if key.kind == "vec3":
         if (not isinstance(value, list) or len(value) != 3
                 or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value)):
@@ -310,6 +385,8 @@ def _check_table(table: Any, keys: tuple[Key, ...], where: str, errors: _Errors,
                            + (f", {key.unit}" if key.unit and key.unit != "-" else "") + ")")
             else:
                 out[key.name] = np.array(key.default, dtype=np.float64) if key.kind == "vec3" and key.default is not None else key.default
+                if key.kind == "float_or_auto" and key.default == "auto":
+                    out[key.name] = None  # as if "auto" had been written
     return out
 
 
@@ -337,7 +414,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
     for name, table in raw_materials.items():
         values = _check_table(table, SCHEMA["materials"][1], f"materials.{name}", errors)
         nu = values.get("poisson_ratio")
-        if isinstance(nu, float) and nu > 0.5:
+        if isinstance(nu, float) and 0.5 < nu <= 1.0:
             warnings.warn(f"{source}: materials.{name}.poisson_ratio = {nu:g} > 0.5 is not physical; "
                           "accepted for stiffness-ratio studies (the paper's Table 1)", stacklevel=2)
         if all(isinstance(values.get(k), float) for k in ("youngs_modulus", "poisson_ratio", "density")):
@@ -358,7 +435,8 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
     contact = data.get("contact")
     law_name, law_parameters = None, {}
     if not isinstance(contact, dict):
-        errors.add("contact", 'missing [contact] section with at least law = "..." and friction')
+        errors.add("contact", ("expected a table" if "contact" in data else "missing [contact] section")
+                   + ' with at least law = "..." and the law\'s parameters, e.g. friction (`minidem laws`)')
     else:
         _check_table(contact, SCHEMA["contact"][1], "contact", errors, open_keys=True)
         if isinstance(contact.get("law"), str):
@@ -379,10 +457,21 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         errors.add("walls", "expected an array of tables: [[walls]]")
         walls = []
     wall_point, wall_normal, wall_material = [], [], []
+    from minidem import walls as wall_shapes
+
+    wall_set = wall_shapes.WallSet.empty()
+    cylinders, meshes = [], []
     for index, table in enumerate(walls):
         where = f"walls[{index}]"
         values = _check_table(table, SCHEMA["walls"][1], where, errors)
+        kind = values.get("type")
+        if kind in ("box", "cylinder", "mesh"):
+            _shaped_wall(kind, values, where, source, errors, material_of, wall_point, wall_normal,
+                         wall_material, cylinders, meshes)
+            continue
         normal = values.get("normal")
+        if normal is None and kind == "plane":
+            errors.add(f"{where}.normal", "missing required key for a plane (normal pointing to the spheres)")
         if isinstance(normal, np.ndarray):
             length = float(np.linalg.norm(normal))
             if length == 0.0:
@@ -429,8 +518,15 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
                 radius.insert(0, values["radius"])
                 particle_material.insert(0, material_of(values.get("material"), "impact.material"))
                 impact = Impact(values["speed"], values["angle_deg"], wall, normal, tangent)
+    fills = data.get("fill", [])
+    if not isinstance(fills, list):
+        errors.add("fill", "expected an array of tables: [[fill]]")
+        fills = []
+    for index, table in enumerate(fills):
+        _fill(table, f"fill[{index}]", source, errors, material_of, position, velocity, spin, radius,
+              particle_material)
     if not radius and not errors.messages:
-        errors.add("", "the scene has no particles: add an [impact] block or [[particles]]")
+        errors.add("", "the scene has no particles: add an [impact] block, [[particles]] or [[fill]]")
 
     run = _check_table(data.get("run", {}), SCHEMA["run"][1], "run", errors)
     if run.get("stop") == "time" and run.get("end_time") is None:
@@ -462,9 +558,119 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         trace=output["trace"],
         impact=impact,
         raw=data,
+        skin=run["skin"],
+        threads=run["threads"],
+        vtk=impact is None if output["vtk"] is None else output["vtk"],
+        output_interval=output["interval"],
+        vtk_contacts=output["contacts"],
     )
+    wall_set.plane_point, wall_set.plane_normal = scene.wall_point, scene.wall_normal
+    wall_set.plane_material = scene.wall_material
+    if cylinders:
+        wall_set.cylinder_base = np.array([c[0] for c in cylinders])
+        wall_set.cylinder_axis = np.array([c[1] for c in cylinders])
+        wall_set.cylinder_radius = np.array([c[2] for c in cylinders])
+        wall_set.cylinder_length = np.array([c[3] for c in cylinders])
+        wall_set.cylinder_material = np.array([c[4] for c in cylinders], dtype=np.int64)
+    if meshes:
+        wall_set.triangles = np.concatenate([v[f] for v, f, _ in meshes])
+        wall_set.triangle_material = np.concatenate([np.full(len(f), m, dtype=np.int64) for v, f, m in meshes])
+        wall_set.meshes = [(v, f) for v, f, _ in meshes]
+    scene.walls = wall_set
     _check_geometry(scene)
     return scene
+
+
+def _required(values, keys, kind, where, errors) -> bool:
+    missing = [k for k in keys if values.get(k) is None]
+    for k in missing:
+        errors.add(f"{where}.{k}", f"missing required key for {kind}")
+    return not missing
+
+
+def _shaped_wall(kind, values, where, source, errors, material_of, wall_point, wall_normal, wall_material,
+                 cylinders, meshes) -> None:
+    """Box, cylinder and mesh walls (see minidem/walls.py); planes are handled inline."""
+    from minidem import walls as wall_shapes
+
+    material = material_of(values.get("material"), f"{where}.material")
+    if kind == "box":
+        if _required(values, ("lower", "upper"), "a box", where, errors):
+            if np.any(values["upper"] <= values["lower"]):
+                errors.add(f"{where}.upper", f"must exceed lower on every axis, got lower "
+                           f"{values['lower'].tolist()}, upper {values['upper'].tolist()}")
+                return
+            for point, normal in wall_shapes.box_planes(values["lower"], values["upper"], values["open_top"]):
+                wall_point.append(point)
+                wall_normal.append(normal)
+                wall_material.append(material)
+    elif kind == "cylinder":
+        if _required(values, ("radius", "length"), "a cylinder", where, errors):
+            axis = values["axis"]
+            if float(np.linalg.norm(axis)) == 0.0:
+                errors.add(f"{where}.axis", "must not be the zero vector")
+                return
+            axis = axis / np.linalg.norm(axis)
+            cylinders.append((values["point"], axis, values["radius"], values["length"], material))
+            if values["bottom"]:
+                wall_point.append(values["point"])
+                wall_normal.append(axis)
+                wall_material.append(material)
+    elif kind == "mesh":
+        if _required(values, ("file",), "a mesh", where, errors):
+            path = Path(values["file"])
+            if not path.is_absolute():
+                path = Path(source).parent / path
+            try:
+                vertices, faces = wall_shapes.read_mesh(path, values["scale"], values["offset"])
+            except ValueError as exc:
+                errors.add(f"{where}.file", str(exc))
+                return
+            meshes.append((vertices, faces, material))
+
+
+def _fill(table, where, source, errors, material_of, position, velocity, spin, radius, particle_material) -> None:
+    """Particles from a [[fill]] generator (see minidem/particles.py), appended to the lists."""
+    from minidem import particles as generators
+
+    values = _check_table(table, SCHEMA["fill"][1], where, errors)
+    kind = values.get("kind")
+    material = material_of(values.get("material"), f"{where}.material")
+    try:
+        if kind == "lattice" and _required(values, ("radius", "lower", "upper", "spacing"), "a lattice", where, errors):
+            if values["spacing"] < 2.0 * values["radius"] + 2.0 * values["jitter"]:
+                errors.add(f"{where}.spacing", f"must be at least 2 (radius + jitter) = "
+                           f"{2 * (values['radius'] + values['jitter']):g} m so spheres start apart")
+                return
+            centres = generators.lattice(values["lower"], values["upper"], values["spacing"], values["count"],
+                                         values["jitter"], values["seed"])
+            radii = np.full(len(centres), values["radius"])
+            speeds, spins = np.tile(values["velocity"], (len(centres), 1)), np.zeros((len(centres), 3))
+        elif kind == "random" and _required(values, ("radius", "lower", "upper", "count"), "a random fill",
+                                            where, errors):
+            largest = values["radius_max"] or values["radius"]
+            if largest < values["radius"]:
+                errors.add(f"{where}.radius_max", "must be >= radius")
+                return
+            centres, radii = generators.random_packing(values["lower"], values["upper"], values["count"],
+                                                       values["radius"], largest, values["seed"])
+            speeds, spins = np.tile(values["velocity"], (len(centres), 1)), np.zeros((len(centres), 3))
+        elif kind == "file" and _required(values, ("file",), "a file fill", where, errors):
+            path = Path(values["file"])
+            if not path.is_absolute():
+                path = Path(source).parent / path
+            read = generators.read_particles(path)
+            centres, radii, speeds, spins = read["position"], read["radius"], read["velocity"], read["angular_velocity"]
+        else:
+            return
+    except ValueError as exc:
+        errors.add(where, str(exc))
+        return
+    position.extend(centres)
+    velocity.extend(speeds)
+    spin.extend(spins)
+    radius.extend(radii.tolist())
+    particle_material.extend([material] * len(centres))
 
 
 def _tangent(normal: np.ndarray, given, errors: _Errors):
@@ -481,13 +687,45 @@ def _tangent(normal: np.ndarray, given, errors: _Errors):
     raise AssertionError("no tangent for a unit normal")
 
 
-def _check_geometry(scene: Scene) -> None:
+def _particle_name(scene: Scene, index: int) -> str:
+    """The scenario table a particle came from (the [impact] sphere is particle 0)."""
+    if scene.impact is not None:
+        return "impact" if index == 0 else f"particles[{index - 1}]"
+    return f"particles[{index}]"
+
+
+# Initial overlaps below this fraction of the radius are round-off of "touching".
+_TOUCH_TOLERANCE = 1e-9
+
+
+def _check_geometry(scene: Scene, max_reported: int = 5) -> None:
+    """Refuse particles behind or inside a wall and particles overlapping each other at
+    t = 0: the first step would release the stored elastic energy as a blast."""
     errors = _Errors(scene.source)
     for w in range(scene.wall_point.shape[0]):
+        plane = (f"wall {w} (walls[{w}]: the plane through {scene.wall_point[w].tolist()} with normal "
+                 f"{scene.wall_normal[w].tolist()})")
         overlap = scene.radius - (scene.position - scene.wall_point[w]) @ scene.wall_normal[w]
         for i in np.flatnonzero(overlap >= scene.radius):
-            errors.add(f"particle {i}", f"centre is on or behind wall {w} (the plane through "
-                       f"{scene.wall_point[w].tolist()} with normal {scene.wall_normal[w].tolist()})")
+            errors.add(_particle_name(scene, i), f"centre is on or behind {plane}; move the particle to "
+                       "the side the normal points to, or flip the wall's normal")
+        for i in np.flatnonzero((overlap > _TOUCH_TOLERANCE * scene.radius) & (overlap < scene.radius)):
+            errors.add(_particle_name(scene, i), f"overlaps {plane} by {overlap[i]:.3g} m at t = 0; move it "
+                       f"at least that far along the normal")
+    if scene.n_particles > 1:
+        from minidem.neighbours import build_pairs
+
+        offsets, neighbours = build_pairs(scene.position, scene.radius, 0.0)
+        first = np.repeat(np.arange(scene.n_particles), np.diff(offsets))
+        gap = (np.linalg.norm(scene.position[first] - scene.position[neighbours], axis=1)
+               - scene.radius[first] - scene.radius[neighbours])
+        overlapping = np.flatnonzero(gap < -_TOUCH_TOLERANCE * np.minimum(scene.radius[first], scene.radius[neighbours]))
+        for k in overlapping[:max_reported]:
+            i, j = sorted((int(first[k]), int(neighbours[k])))
+            errors.add(_particle_name(scene, i), f"overlaps {_particle_name(scene, j)} by {-gap[k]:.3g} m at "
+                       "t = 0; place the spheres at least the sum of their radii apart")
+        if len(overlapping) > max_reported:
+            errors.add("", f"... and {len(overlapping) - max_reported} more overlapping pairs")
     errors.raise_if_any()
 
 

@@ -3,7 +3,9 @@
 ``compile_kernel`` specialises the kernel template (``minidem/kernel.py``) for one law
 and one scene shape; ``Simulation`` prepares the per-material-pair constants, chooses
 the time step and advances the compiled kernel in chunks (no Python call per step or
-per contact).
+per contact). Between chunks it rebuilds the Verlet lists when the kernel asks
+(carrying every contact's history into the new list), samples the kinetic energy and
+hands frames to an output callback.
 """
 
 from __future__ import annotations
@@ -20,13 +22,18 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from minidem import __version__, kernel, laws
+from minidem import __version__, kernel, laws, neighbours
 from minidem.scenario import Scene, ScenarioError
 
 _TEMPLATE = Path(kernel.__file__)
 _BLOCK_START = "# >>> specialisation block"
 _BLOCK_END = "# <<< specialisation block"
 _ENGINE_SOURCES = ("kernel.py", "contact.py", "integrate.py")
+# Scenes with more particles than this run their particle loops in parallel; smaller
+# ones run serial and record contact statistics (first touch, separation, peaks).
+PARALLEL_ABOVE = 16
+# scene-shape flags of the kernel specialisation block, in order
+KERNEL_FLAGS = ("SPIN", "PAIRS", "CYLINDERS", "MESHES", "PARALLEL")
 
 
 class RunFailure(Exception):
@@ -55,8 +62,11 @@ def _law_source_hash(law: laws.ContactLaw) -> str:
 _LOADED: dict[str, object] = {}
 
 
-def compile_kernel(entry: laws.RegisteredLaw, spin: bool):
-    """Return the kernel module specialised for ``entry.law`` (compiled lazily, cached on disk)."""
+def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, cylinders: bool = False,
+                   meshes: bool = False, parallel: bool = False):
+    """Return the kernel module specialised for ``entry.law`` and a scene shape (compiled
+    lazily, cached on disk)."""
+    flags = dict(zip(KERNEL_FLAGS, (bool(spin), bool(pairs), bool(cylinders), bool(meshes), bool(parallel))))
     law = entry.law
     func = law.force.py_func
     engine = hashlib.sha256()
@@ -64,7 +74,7 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool):
         engine.update((_TEMPLATE.parent / name).read_bytes())
     key = hashlib.sha256(
         f"{engine.hexdigest()}|{_law_source_hash(law)}|{entry.distribution}|{entry.version}|{func.__module__}."
-        f"{func.__qualname__}|{spin}|{numba.__version__}|{__version__}".encode()
+        f"{func.__qualname__}|{flags}|{numba.__version__}|{__version__}".encode()
     ).hexdigest()[:16]
     module_name = f"minidem_kernel_{law.name}_{key}"
     if module_name in _LOADED:
@@ -74,7 +84,7 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool):
     _, tail = rest.split(_BLOCK_END, 1)
     block = (f"{_BLOCK_START} (law '{law.name}' from {entry.distribution} {entry.version})\n"
              f"from {func.__module__} import {func.__qualname__} as law_force  # noqa: E402\n\n"
-             f"SPIN = {bool(spin)}\n{_BLOCK_END}")
+             + "".join(f"{name} = {value}\n" for name, value in flags.items()) + _BLOCK_END)
     path = cache_directory() / f"{module_name}.py"
     if not path.exists():
         # written once and never touched again: numba keys its cache on the file's stamp
@@ -111,6 +121,65 @@ class RunResult:
     peak_tangential_force: float
     wall_time: float
     trace: np.ndarray | None
+    force: np.ndarray | None = None
+    torque: np.ndarray | None = None
+    contacts: int = 0  # touching pairs and wall contacts at the end
+    neighbour_builds: int = 0
+    threads: int = 1
+    energy: np.ndarray | None = None  # rows (time s, translational + rotational kinetic energy J)
+
+
+class State:
+    """The arrays the compiled kernel advances, grouped as it takes them.
+
+    ``pairs`` and ``meshes`` hold Verlet lists (CSR) with one history row per entry;
+    :meth:`Simulation.rebuild` replaces them, carrying every entry's history over.
+    """
+
+    def __init__(self, sim: "Simulation"):
+        scene, walls = sim.scene, sim.scene.walls
+        n, h = scene.n_particles, sim.law.history_size
+        self.position = scene.position.copy()
+        self.velocity = scene.velocity.copy()
+        self.angular_velocity = scene.angular_velocity.copy()
+        self.force = np.zeros((n, 3))
+        self.torque = np.zeros((n, 3))
+        self.mass = scene.mass
+        self.particles = (self.position, self.velocity, self.angular_velocity, self.force, self.torque,
+                          self.mass, 1.0 / self.mass, 1.0 / scene.inertia, scene.radius, scene.particle_material)
+        self.law = (sim.pair_row, sim.constants, np.array(sim.law.vector_history_offsets, dtype=np.int64))
+        plane_overlap = scene.radius[:, None] - np.einsum(
+            "iwk,wk->iw", self.position[:, None, :] - scene.wall_point[None, :, :], scene.wall_normal)
+        self.planes = (scene.wall_point, scene.wall_normal, scene.wall_material,
+                       np.zeros((n, scene.wall_point.shape[0], h)), plane_overlap)
+        n_cylinders = walls.cylinder_base.shape[0]
+        self.cylinders = (walls.cylinder_base, walls.cylinder_axis, walls.cylinder_radius, walls.cylinder_length,
+                          walls.cylinder_material, np.zeros((n, n_cylinders, h)), np.full((n, n_cylinders), -1.0))
+        empty_index = np.zeros(0, dtype=np.int64)
+        self.meshes = (walls.triangles, walls.triangle_material, np.zeros(n + 1, dtype=np.int64), empty_index,
+                       np.zeros((0, h)), np.zeros(0))
+        self.pairs = (np.zeros(n + 1, dtype=np.int64), empty_index, np.zeros((0, h)), np.zeros(0),
+                      np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(n + 1, dtype=np.int64), empty_index)
+        self.position_at_build = self.position.copy()
+        self.builds = 0
+
+    def contact_pairs(self):
+        """(pairs (M, 2) particle indices, normal force (M,) N) of touching particle pairs."""
+        offsets, neighbours_, _, overlap, pair_force = self.pairs[:5]
+        first = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+        touching = overlap > 0.0
+        i, j = first[touching], neighbours_[touching]
+        normal = self.position[i] - self.position[j]
+        normal /= np.linalg.norm(normal, axis=1)[:, None]
+        return np.column_stack([i, j]), np.einsum("mk,mk->m", pair_force[touching], normal)
+
+    def count_contacts(self) -> int:
+        return int(np.count_nonzero(self.pairs[3] > 0) + np.count_nonzero(self.planes[4] > 0)
+                   + np.count_nonzero(self.cylinders[6] > 0) + np.count_nonzero(self.meshes[5] > 0))
+
+    def kinetic_energy(self, inertia) -> float:
+        return float(0.5 * np.dot(self.mass, np.einsum("ik,ik->i", self.velocity, self.velocity))
+                     + 0.5 * np.dot(inertia, np.einsum("ik,ik->i", self.angular_velocity, self.angular_velocity)))
 
 
 class Simulation:
@@ -118,13 +187,24 @@ class Simulation:
 
     def __init__(self, scene: Scene, registry: laws.LawRegistry | None = None):
         self.scene = scene
+        if scene.walls is None:  # a Scene built by hand: planes only
+            from minidem.walls import WallSet
+
+            scene.walls = WallSet.empty()
+            scene.walls.plane_point, scene.walls.plane_normal = scene.wall_point, scene.wall_normal
+            scene.walls.plane_material = scene.wall_material
         registry = registry or laws.registry()
         self.entry = registry.entry(scene.law_name)
         self.law = self.entry.law
         self.spin = self.law.is_frictional(scene.law_parameters)
+        self.pairs = scene.n_particles > 1
+        self.parallel = scene.n_particles > PARALLEL_ABOVE
+        self.skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
         self._prepare_constants()
         self.dt, self.dt_reason = self._choose_time_step()
-        self.kernel = compile_kernel(self.entry, self.spin)
+        self.kernel = compile_kernel(self.entry, self.spin, self.pairs, scene.walls.cylinder_base.shape[0] > 0,
+                                     scene.walls.triangles.shape[0] > 0, self.parallel)
+        self.state: State | None = None
 
     # -- constants -------------------------------------------------------------
     def _reference_size(self) -> tuple[float, float]:
@@ -140,7 +220,7 @@ class Simulation:
         radius, mass = self._reference_size()
         speed = scene.impact.speed if scene.impact is not None else None
         self.pair_row = np.zeros((n, n), dtype=np.int64)
-        rows, self.pairs, self.constants_by_pair = [], {}, {}
+        rows, self.pairs_, self.constants_by_pair = [], {}, {}
         for a in range(n):
             for b in range(a, n):
                 pair = laws.ContactPair.from_materials(materials[a], materials[b], radius, mass, speed)
@@ -153,7 +233,7 @@ class Simulation:
                                         f"materials '{materials[a].name}'/'{materials[b].name}': {exc}") from exc
                 self.pair_row[a, b] = self.pair_row[b, a] = len(rows)
                 rows.append(row)
-                self.pairs[(a, b)] = pair
+                self.pairs_[(a, b)] = pair
                 self.constants_by_pair[(a, b)] = named
         self.constants = np.array(rows, dtype=np.float64).reshape(len(rows), len(law.constants))
 
@@ -169,21 +249,22 @@ class Simulation:
 
     def contact_time(self) -> float:
         """Shortest normal-impact duration among the contact kinds the scene can have."""
-        scene = self.scene
+        scene, walls = self.scene, self.scene.walls
         speed = self.characteristic_speed()
         times = []
+        wall_materials = set(walls.plane_material.tolist()) | set(walls.cylinder_material.tolist()) \
+            | set(walls.triangle_material.tolist())
         for material in np.unique(scene.particle_material):
             members = scene.particle_material == material
             smallest = np.argmin(np.where(members, scene.radius, np.inf))
             r, m = float(scene.radius[smallest]), float(scene.mass[smallest])
-            partners = set(scene.wall_material.tolist()) if scene.wall_material.size else set()
-            for other in partners:
+            for other in wall_materials:
                 key = (min(material, other), max(material, other))
-                times.append(laws.law_contact_time(self.law, self.pairs[key], self.constants_by_pair[key], r, m, speed))
+                times.append(laws.law_contact_time(self.law, self.pairs_[key], self.constants_by_pair[key], r, m, speed))
             if scene.n_particles > 1:
                 for other in np.unique(scene.particle_material):
                     key = (min(material, other), max(material, other))
-                    times.append(laws.law_contact_time(self.law, self.pairs[key], self.constants_by_pair[key],
+                    times.append(laws.law_contact_time(self.law, self.pairs_[key], self.constants_by_pair[key],
                                                        r / 2, m / 2, speed))
         return min(times) if times else math.inf
 
@@ -199,86 +280,159 @@ class Simulation:
         return dt, (f"auto: contact time {self.reference_contact_time:.4g} s "
                     f"/ {scene.steps_per_contact} steps per contact")
 
+    # -- neighbour lists -----------------------------------------------------------
+    def rebuild(self, state: State) -> None:
+        """New Verlet lists at the current positions; every contact keeps its history."""
+        radius = self.scene.radius
+        if self.pairs:
+            old_offsets, old_neighbours, old_history, old_overlap = state.pairs[:4]
+            offsets, found = neighbours.build_pairs(state.position, radius, self.skin)
+            history, overlap = neighbours.carry_history(old_offsets, old_neighbours, old_history, old_overlap,
+                                                        offsets, found)
+            if state.builds == 0:
+                # t = 0: spheres may start touching; their overlap is the 'previous' one
+                first = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+                overlap = radius[first] + radius[found] - np.linalg.norm(
+                    state.position[first] - state.position[found], axis=1)
+            reverse_offsets, reverse_entries = neighbours.reverse_index(offsets, found, len(radius))
+            m = found.shape[0]
+            state.pairs = (offsets, found, history, overlap, np.zeros((m, 3)), np.zeros((m, 3)),
+                           reverse_offsets, reverse_entries)
+        if state.meshes[0].shape[0]:
+            triangles, triangle_material, old_offsets, old_found, old_history, old_overlap = state.meshes
+            offsets, found = neighbours.mesh_candidates(state.position, radius, self.skin, triangles)
+            history, overlap = neighbours.carry_history(old_offsets, old_found, old_history, old_overlap,
+                                                        offsets, found)
+            state.meshes = (triangles, triangle_material, offsets, found, history, overlap)
+        state.position_at_build[:] = state.position
+        state.builds += 1
+
     # -- running -----------------------------------------------------------------
-    def run(self, chunk_steps: int = 200_000, progress=None) -> RunResult:
+    def run(self, chunk_steps: int = 200_000, progress=None, on_frame=None) -> RunResult:
+        """Run the scene.
+
+        progress(steps, total_steps, contacts): called after every chunk (about every
+        0.2 s of wall time). on_frame(time, state): called at t = 0 and every
+        ``output_interval`` of simulated time (state: :class:`State`).
+        """
         scene, k = self.scene, self.kernel
-        n, n_walls = scene.n_particles, scene.wall_point.shape[0]
-        position = scene.position.copy()
-        velocity = scene.velocity.copy()
-        angular_velocity = scene.angular_velocity.copy()
-        force = np.zeros((n, 3))
-        torque = np.zeros((n, 3))
-        mass = scene.mass
-        inverse_mass = 1.0 / mass
-        inverse_inertia = 1.0 / scene.inertia
-        wall_history = np.zeros((n, n_walls, self.law.history_size))
-        wall_overlap = scene.radius[:, None] - np.einsum(
-            "iwk,wk->iw", position[:, None, :] - scene.wall_point[None, :, :], scene.wall_normal)
-        probe_wall = scene.impact.wall if scene.impact is not None else (0 if n_walls else -1)
+        threads_before = numba.get_num_threads()
+        threads = min(scene.threads or numba.config.NUMBA_NUM_THREADS, numba.config.NUMBA_NUM_THREADS)
+        numba.set_num_threads(threads)
+        try:
+            return self._run(scene, k, chunk_steps, progress, on_frame, threads)
+        finally:
+            numba.set_num_threads(threads_before)
+
+    def frame_interval(self, end_time: float) -> float | None:
+        scene = self.scene
+        if not scene.vtk:
+            return None
+        return scene.output_interval if scene.output_interval is not None else end_time / 50.0
+
+    def _run(self, scene, k, chunk_steps, progress, on_frame, threads) -> RunResult:
+        state = self.state = State(self)
+        probe_wall = scene.impact.wall if scene.impact is not None else (0 if scene.wall_point.shape[0] else -1)
         probe = np.zeros(8)
         stats = np.array([-1.0, -1.0, 0.0, 0.0, 0.0])
-        status = np.zeros(3, dtype=np.int64)
+        status = np.zeros(4, dtype=np.int64)
+        tracking = (probe_wall, probe, stats, status)
         stop_at_separation = scene.stop == "separation"
         end_time = scene.end_time if scene.end_time is not None else 100.0 * self.reference_contact_time
         if not math.isfinite(end_time):
             raise ScenarioError(f"{scene.source}: run.end_time is needed: the scene has no contact to stop at")
         total_steps = int(math.ceil(end_time / self.dt - 1e-9))
-        trace_chunks = []
-        args = (position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia,
-                scene.radius, scene.particle_material, scene.gravity, scene.wall_point, scene.wall_normal,
-                scene.wall_material, self.pair_row, self.constants, wall_history, wall_overlap)
+        if self.pairs or state.meshes[0].shape[0]:
+            self.rebuild(state)
+        half_skin_squared = (0.5 * self.skin) ** 2
+        inertia = scene.inertia
+        no_trace = np.zeros((0, len(kernel.TRACE_COLUMNS)))
+
+        def call(start_step, n_steps, resume, trace):
+            return k.advance(state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
+                             scene.gravity, state.position_at_build, half_skin_squared, self.dt, 0.0, start_step,
+                             n_steps, resume, stop_at_separation, trace, tracking)
 
         try:
             # zero-length step: initial forces (dt = 0, so no displacement increments) and
             # the one compilation of this kernel, reported against the law that caused it
-            k.compute_forces(position, velocity, angular_velocity, force, torque, mass, scene.radius,
-                             scene.particle_material, scene.gravity, scene.wall_point, scene.wall_normal,
-                             scene.wall_material, self.pair_row, self.constants, wall_history, wall_overlap,
-                             0.0, 0.0, probe_wall, probe, stats, status)
-            k.advance(*args, self.dt, 0.0, 0, 0, stop_at_separation, probe_wall, probe,
-                      np.zeros((0, len(kernel.TRACE_COLUMNS))), stats, status)
+            k.compute_forces(state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
+                             scene.gravity, 0.0, 0.0, tracking)
+            k.finish(state.particles, state.pairs, 0.0)
+            call(0, 0, False, no_trace)
         except numba.core.errors.NumbaError as exc:
             raise laws.LawError(f"law '{self.law.name}' from plugin '{self.entry.plugin}' "
                                 f"({self.entry.distribution}): its force function does not compile in the "
                                 f"engine: {_numba_cause(exc)}") from exc
+        frame_interval = self.frame_interval(end_time)
+        # kinetic energy is sampled at least 200 times a run, and at every frame
+        sample_interval = min(frame_interval or math.inf, end_time / 200.0)
+        next_frame = 0.0
+        if on_frame is not None and frame_interval:
+            on_frame(0.0, state)
+            next_frame = frame_interval
+        energy = [(0.0, state.kinetic_energy(inertia))]
         started = wallclock.perf_counter()
-        steps = 0
-        separated = False
+        steps, separated, resume = 0, False, False
+        chunk_goal = min(chunk_steps, 100)  # grown to about 0.2 s of wall time per chunk
+        trace_chunks = []
         while steps < total_steps and status[0] == kernel.OK:
-            chunk = min(chunk_steps, total_steps - steps)
-            trace = np.zeros((chunk if scene.trace else 0, len(kernel.TRACE_COLUMNS)))
-            taken = k.advance(*args, self.dt, 0.0, steps, chunk, stop_at_separation, probe_wall, probe,
-                              trace, stats, status)
+            chunk = min(chunk_goal, total_steps - steps,
+                        max(1, int(math.ceil(sample_interval / self.dt - 1e-9))))
+            if on_frame is not None and frame_interval:
+                chunk = min(chunk, max(1, int(round(next_frame / self.dt)) - steps))
+            trace = np.zeros((chunk, len(kernel.TRACE_COLUMNS))) if scene.trace else no_trace
+            chunk_started = wallclock.perf_counter()
+            taken, needs_rebuild = call(steps, chunk, resume, trace)
             if scene.trace:
                 trace_chunks.append(trace[:taken])
             steps += taken
+            resume = False
+            if needs_rebuild:
+                self.rebuild(state)
+                resume = True
+                continue
+            elapsed = wallclock.perf_counter() - chunk_started
+            if taken == chunk and elapsed < 0.1:
+                chunk_goal = min(chunk_steps, chunk_goal * 2)
+            now = steps * self.dt
+            if taken == chunk or status[0] != kernel.OK:
+                energy.append((now, state.kinetic_energy(inertia)))
+            if on_frame is not None and frame_interval and steps >= int(round(next_frame / self.dt)):
+                on_frame(now, state)
+                next_frame += frame_interval
             if progress is not None:
-                progress(steps, total_steps)
+                progress(steps, total_steps, state.count_contacts())
             if taken < chunk and status[0] == kernel.OK:
                 separated = True
+                energy.append((now, state.kinetic_energy(inertia)))
                 break
         wall_time = wallclock.perf_counter() - started
         if status[0] != kernel.OK:
             self._report_fault(status, steps)
         return RunResult(
-            scene=scene, law=self.law, constants=self.constants_by_pair, position=position, velocity=velocity,
-            angular_velocity=angular_velocity, initial_velocity=scene.velocity, initial_angular_velocity=scene.angular_velocity,
-            steps=steps, dt=self.dt, dt_reason=self.dt_reason, time=steps * self.dt, separated=separated,
-            first_contact_time=stats[0], last_separation_time=stats[1], max_overlap=stats[2],
-            peak_normal_force=stats[3], peak_tangential_force=stats[4], wall_time=wall_time,
-            trace=np.concatenate(trace_chunks) if trace_chunks else None,
+            scene=scene, law=self.law, constants=self.constants_by_pair, position=state.position,
+            velocity=state.velocity, angular_velocity=state.angular_velocity, initial_velocity=scene.velocity,
+            initial_angular_velocity=scene.angular_velocity, steps=steps, dt=self.dt, dt_reason=self.dt_reason,
+            time=steps * self.dt, separated=separated, first_contact_time=stats[0], last_separation_time=stats[1],
+            max_overlap=stats[2], peak_normal_force=stats[3], peak_tangential_force=stats[4], wall_time=wall_time,
+            trace=np.concatenate(trace_chunks) if trace_chunks else None, force=state.force, torque=state.torque,
+            contacts=state.count_contacts(), neighbour_builds=state.builds, threads=threads,
+            energy=np.array(energy),
         )
 
     def _report_fault(self, status, steps) -> None:
-        code, particle, partner = (int(x) for x in status)
+        code, particle, partner, kind = (int(x) for x in status)
         when = f"at step {steps} (t = {steps * self.dt:.6g} s)"
+        what = {kernel.PLANE: "plane wall", kernel.CYLINDER: "cylinder wall", kernel.TRIANGLE: "mesh triangle",
+                kernel.PARTICLE: "particle"}.get(kind, "partner")
         if code == kernel.NON_FINITE_FORCE:
             raise RunFailure(f"law '{self.law.name}' ({self.entry.distribution}) returned a non-finite force "
-                             f"{when} for particle {particle} on wall {partner}; the time step is "
+                             f"{when} for particle {particle} against {what} {partner}; the time step is "
                              f"{self.dt:.3g} s ({self.dt_reason})")
         if code == kernel.TUNNELLED:
-            raise RunFailure(f"particle {particle} passed through wall {partner} {when}: the time step "
-                             f"{self.dt:.3g} s is too large for this impact; try run.dt = {self.dt / 10:.3g}")
+            raise RunFailure(f"particle {particle} passed through {what} {partner} {when}: the time step "
+                             f"{self.dt:.3g} s is too large for this scene; try run.dt = {self.dt / 10:.3g}")
         raise RunFailure(f"run stopped with status {code} {when}")
 
 

@@ -153,8 +153,12 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
         cross_z += tangent_stiffness * (ddz - along * az)
         if mode == RELOADING and force_along >= ft_star:
             mode = LOADING  # back on the virgin curve: the reversal memory is erased
-        elif mode == UNLOADING and force_along <= -ft_star:
-            # full reversal: virgin loading in the opposite direction
+        elif mode == UNLOADING and ft_star > 0.0 and force_along <= -ft_star:
+            # full reversal (Masing): the unloading branch has met the mirrored virgin
+            # curve at -Ft*, so the contact forgets Ft* and loads afresh the other way.
+            # Eq 23 drives Ft* below zero once Fn has fallen by more than
+            # (mu Fn_rev - Ft_rev)/mu; -Ft* is then no reversal point at all, and the
+            # unloading branch (theta = 1 there) continues until the Coulomb cap.
             ax, ay, az = -ax, -ay, -az
             force_along = -force_along
             cross_x, cross_y, cross_z = -cross_x, -cross_y, -cross_z

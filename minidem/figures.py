@@ -1,0 +1,133 @@
+"""PNG figures of a sweep, laid out like the seed paper's (Thornton et al. 2011).
+
+* ``y1``/``y2``: normalised rebound surface velocity / spin against the normalised angle
+  x (Figs 2-3, 5-6, 8-9), with the rigid-body lines of eqs 6-8: y1 = max(x - 7 mu, 0),
+  y2 = -5 min(x/7, mu).
+* ``et``: tangential restitution against the impact angle (Figs 4, 7, 10), with the
+  rigid-body et: 5/7 while the sphere ends rolling, 1 - mu (1 + en)/tan(theta) in gross
+  sliding (en = 1).
+* ``force_displacement``: tangential force against tangential displacement of each
+  case's trace (Figs 11-12).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+MARKERS = "os^vDx+*<>ph"
+
+
+def _series_of(sweep, rows):
+    """[(label, [rows])] in first-seen order of the non-angle swept values."""
+    from minidem.sweep import _series
+
+    keys = sweep.series_keys
+    positions = [sweep.keys.index(k) for k in keys]
+    groups = {s: [] for s in _series(sweep)}
+    for row, case in zip(rows, sweep.cases):
+        if not row.get("error"):
+            groups[tuple(case[p] for p in positions)].append(row)
+    labels = sweep.series_labels or [", ".join(_value_label(k, v) for k, v in zip(keys, s)) or "run"
+                                     for s in groups]
+    return list(zip(labels, groups.values()))
+
+
+def _value_label(key, value):
+    return str(value) if key == "contact.law" else f"{key.split('.')[-1]} = {value:g}" if isinstance(
+        value, float) else f"{key.split('.')[-1]} = {value}"
+
+
+def _finish(fig, ax, sweep, path, xlabel, ylabel):
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if sweep.title:
+        ax.set_title(sweep.title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def rigid_body_y1(x, mu):
+    return np.maximum(x - 7.0 * mu, 0.0)
+
+
+def rigid_body_y2(x, mu):
+    return -5.0 * np.minimum(x / 7.0, mu)
+
+
+def rigid_body_et(angle_deg, mu, en=1.0):
+    slide = 1.0 - mu * (1.0 + en) / np.tan(np.radians(angle_deg))
+    return np.maximum(slide, 5.0 / 7.0)
+
+
+def plot_measure(sweep, rows, measure, path, mu):
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    xmax = 0.0
+    for i, (label, group) in enumerate(_series_of(sweep, rows)):
+        xs = np.array([r["x"] for r in group], dtype=float)
+        ys = np.array([r[measure] for r in group], dtype=float)
+        if measure == "et":
+            xs = np.array([r["angle_deg"] for r in group], dtype=float)
+        order = np.argsort(xs)
+        ax.plot(xs[order], ys[order], marker=MARKERS[i % len(MARKERS)], ms=3, lw=1, label=label)
+        xmax = max(xmax, float(np.nanmax(xs)) if xs.size else 0.0)
+    if math.isfinite(mu) and xmax > 0:
+        grid = np.linspace(1e-3, xmax, 400)
+        line = {"y1": rigid_body_y1, "y2": rigid_body_y2, "et": rigid_body_et}[measure](grid, mu)
+        ax.plot(grid, line, "k--", lw=0.8, label="rigid body (eqs 6-8)")
+    if measure == "et":
+        ax.set_ylim(0.0, 1.05)
+        return _finish(fig, ax, sweep, path, "impact angle (deg)", "tangential restitution et")
+    labels = {"y1": "y1 = 2 vtr / ((1 + en) Vni)", "y2": "y2 = 2 R wr / ((1 + en) Vni)"}
+    return _finish(fig, ax, sweep, path, "x = 2 tan(theta) / (1 + en)", labels[measure])
+
+
+def plot_force_displacement(sweep, rows, path):
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    for i, (label, group) in enumerate(_series_of(sweep, rows)):
+        for row in group:
+            if not row.get("trace_file"):
+                continue
+            trace = np.genfromtxt(row["trace_file"], delimiter=",", names=True)
+            tangent = _tangent_of(sweep)
+            force = sum(trace[f"tangential_force_{a}_n"] * tangent[j] for j, a in enumerate("xyz"))
+            shift = sum(trace[f"tangential_displacement_{a}_m"] * tangent[j] for j, a in enumerate("xyz"))
+            inside = trace["normal_overlap_m"] > 0
+            suffix = f" ({row['angle_deg']:g} deg)" if len(group) > 1 else ""
+            ax.plot(shift[inside] * 1e6, force[inside], lw=1.2, label=label + suffix)
+    ax.axhline(0, color="k", lw=0.5)
+    ax.axvline(0, color="k", lw=0.5)
+    return _finish(fig, ax, sweep, path, "tangential displacement (um)", "tangential force Ft (N)")
+
+
+def _tangent_of(sweep):
+    from minidem import scenario
+
+    scene = scenario.build_scene(scenario.apply_overrides(sweep.base, sweep.overrides(0)), sweep.source)
+    return scene.impact.tangent if scene.impact is not None else np.array([1.0, 0.0, 0.0])
+
+
+def draw(sweep, rows, directory) -> list[Path]:
+    from minidem.sweep import friction_of
+
+    directory = Path(directory)
+    mu = friction_of(sweep)
+    written = []
+    for figure in sweep.figures:
+        path = directory / f"{figure}.png"
+        if figure == "force_displacement":
+            if sweep.keep_traces:
+                written.append(plot_force_displacement(sweep, rows, path))
+        else:
+            written.append(plot_measure(sweep, rows, figure, path, mu))
+    return written

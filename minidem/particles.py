@@ -1,0 +1,135 @@
+"""Particle generators for ``[[fill]]`` tables: a lattice, a random non-overlapping
+packing in a box region, or a file (CSV or VTK)."""
+
+from __future__ import annotations
+
+import math
+import random
+from pathlib import Path
+
+import numpy as np
+
+
+def lattice(lower, upper, spacing: float, count: int | None = None, jitter: float = 0.0,
+            seed: int = 12345) -> np.ndarray:
+    """Simple cubic lattice centres in the box lower..upper, first centre at
+    lower + spacing/2, filled x fastest, then y, then z, up to ``count`` sites (all that
+    fit when None).
+
+    ``jitter`` shifts each site in x and y by a uniform offset in [-jitter, jitter],
+    drawn in the order (dx, dy) per site from Python's ``random.Random(seed)``: the
+    same sequence as the LIGGGHTS lattice generator of the benchmark, so both codes
+    start from identical positions.
+    """
+    lower, upper = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
+    sites = np.floor((upper - lower) / spacing + 1e-9).astype(np.int64)
+    if np.any(sites < 1):
+        raise ValueError(f"the region {lower.tolist()}..{upper.tolist()} holds no lattice site of spacing {spacing:g} m")
+    capacity = int(np.prod(sites))
+    n = capacity if count is None else int(count)
+    if n > capacity:
+        raise ValueError(f"count = {n} exceeds the {capacity} lattice sites ({sites[0]} x {sites[1]} x {sites[2]}) "
+                         f"of spacing {spacing:g} m in the region; enlarge upper or reduce count")
+    k = np.arange(n)
+    index = np.column_stack([k % sites[0], (k // sites[0]) % sites[1], k // (sites[0] * sites[1])])
+    position = lower + spacing * (index + 0.5)
+    if jitter > 0.0:
+        rng = random.Random(seed)
+        for p in range(n):
+            position[p, 0] += rng.uniform(-jitter, jitter)
+            position[p, 1] += rng.uniform(-jitter, jitter)
+    return position
+
+
+def random_packing(lower, upper, count: int, radius_min: float, radius_max: float, seed: int = 12345,
+                   max_attempts_per_particle: int = 1000) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` spheres with radii uniform in [radius_min, radius_max], centres uniform
+    in the region (every sphere wholly inside), none overlapping: random sequential
+    addition with a cell grid of width 2 radius_max for the overlap test."""
+    rng = np.random.default_rng(seed)
+    lower, upper = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
+    if np.any(upper - lower <= 2 * radius_max):
+        raise ValueError("the region is too small for a sphere of radius radius_max")
+    cell = 2.0 * radius_max
+    grid: dict[tuple, list[int]] = {}
+    position = np.empty((count, 3))
+    radius = rng.uniform(radius_min, radius_max, count) if radius_max > radius_min else np.full(count, radius_min)
+    placed = 0
+    attempts = 0
+    while placed < count:
+        attempts += 1
+        if attempts > max_attempts_per_particle * count:
+            raise ValueError(f"placed only {placed} of {count} non-overlapping spheres in the region "
+                             f"after {attempts - 1} attempts: the region is too full; enlarge it or reduce count")
+        r = radius[placed]
+        x = rng.uniform(lower + r, upper - r)
+        key = tuple((x // cell).astype(np.int64))
+        clear = True
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for dz in (-1, 0, 1):
+                    for other in grid.get((key[0] + dx, key[1] + dy, key[2] + dz), ()):
+                        if np.sum((position[other] - x) ** 2) < (r + radius[other]) ** 2:
+                            clear = False
+                            break
+                    if not clear:
+                        break
+                if not clear:
+                    break
+            if not clear:
+                break
+        if clear:
+            position[placed] = x
+            grid.setdefault(key, []).append(placed)
+            placed += 1
+    return position, radius
+
+
+def read_particles(path: str | Path) -> dict[str, np.ndarray]:
+    """Particles from a file: CSV with a header naming at least x, y, z, radius (and
+    optionally vx, vy, vz, wx, wy, wz), or any point file meshio reads (.vtu, .vtk, ...)
+    with a point array ``radius`` (and optionally ``velocity``, ``angular_velocity``),
+    such as a frame minidem wrote. Returns position, radius, velocity, angular_velocity."""
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"no such particle file '{path}'")
+    if path.suffix.lower() == ".csv":
+        try:
+            table = np.genfromtxt(path, delimiter=",", names=True, dtype=np.float64, encoding="utf-8")
+        except ValueError as exc:
+            raise ValueError(f"cannot read particle CSV '{path}': {exc}") from None
+        table = np.atleast_1d(table)
+        names = table.dtype.names or ()
+        missing = [c for c in ("x", "y", "z", "radius") if c not in names]
+        if missing:
+            raise ValueError(f"particle CSV '{path}' lacks column(s) {missing}; its header has {list(names)}")
+
+        def columns(keys):
+            return (np.column_stack([table[k] for k in keys]) if all(k in names for k in keys)
+                    else np.zeros((len(table), 3)))
+
+        out = {"position": columns(("x", "y", "z")), "radius": np.asarray(table["radius"], dtype=np.float64),
+               "velocity": columns(("vx", "vy", "vz")), "angular_velocity": columns(("wx", "wy", "wz"))}
+    else:
+        import meshio
+
+        try:
+            mesh = meshio.read(str(path))
+        except Exception as exc:  # noqa: BLE001
+            raise ValueError(f"cannot read particle file '{path}': {exc}") from None
+        if "radius" not in mesh.point_data:
+            raise ValueError(f"particle file '{path}' has no point array 'radius' (arrays: "
+                             f"{', '.join(mesh.point_data) or 'none'})")
+        n = len(mesh.points)
+        out = {"position": np.asarray(mesh.points, dtype=np.float64).reshape(n, 3),
+               "radius": np.asarray(mesh.point_data["radius"], dtype=np.float64).reshape(n),
+               "velocity": np.asarray(mesh.point_data.get("velocity", np.zeros((n, 3))), dtype=np.float64).reshape(n, 3),
+               "angular_velocity": np.asarray(mesh.point_data.get("angular_velocity", np.zeros((n, 3))),
+                                              dtype=np.float64).reshape(n, 3)}
+    if not np.all(np.isfinite(out["position"])) or not np.all(out["radius"] > 0):
+        raise ValueError(f"particle file '{path}': positions must be finite and radii > 0")
+    return out
+
+
+def sphere_mass(radius, density) -> np.ndarray:
+    return 4.0 / 3.0 * math.pi * np.asarray(radius) ** 3 * density

@@ -1,0 +1,127 @@
+"""Wall geometry: the shapes a scenario's ``[[walls]]`` tables describe, turned into
+the flat arrays the kernel reads, and surfaces for VTK.
+
+Kinds (``type``):
+
+* ``plane``: an infinite plane through ``point`` with unit ``normal`` towards the spheres;
+* ``box``: the inside of the axis-aligned box ``lower``..``upper``, as 6 planes (5 with
+  ``open_top``: no plane at the upper z face);
+* ``cylinder``: the inside surface of a finite cylinder (a silo) of ``radius`` whose
+  axis runs from ``point`` along ``axis`` for ``length``; ``bottom`` adds a plane
+  closing it at ``point``. Open ends: beyond its length the surface does not exist;
+* ``mesh``: triangles read from an STL/OBJ/... file with meshio, scaled by ``scale`` and
+  shifted by ``offset``. A sphere-triangle contact is with the closest point of the
+  triangle (face, edge or vertex); see ``minidem.kernel.mesh_forces`` for how one
+  contact per feature is kept where triangles share edges. Both sides of a triangle
+  repel, so a mesh need not be closed or consistently oriented.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclasses.dataclass
+class WallSet:
+    """Every wall of a scene, flattened per kind (SI units, float64)."""
+
+    plane_point: np.ndarray  # (P, 3)
+    plane_normal: np.ndarray  # (P, 3) unit
+    plane_material: np.ndarray  # (P,) int64
+    cylinder_base: np.ndarray  # (C, 3)
+    cylinder_axis: np.ndarray  # (C, 3) unit
+    cylinder_radius: np.ndarray  # (C,)
+    cylinder_length: np.ndarray  # (C,)
+    cylinder_material: np.ndarray  # (C,) int64
+    triangles: np.ndarray  # (T, 3, 3): vertex k of triangle t is triangles[t, k]
+    triangle_material: np.ndarray  # (T,) int64
+    meshes: list  # (vertices, faces) per mesh wall, for display
+
+    @classmethod
+    def empty(cls) -> "WallSet":
+        z3, zi = np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+        return cls(z3, z3.copy(), zi, z3.copy(), z3.copy(), np.zeros(0), np.zeros(0), zi.copy(),
+                   np.zeros((0, 3, 3)), zi.copy(), [])
+
+
+def box_planes(lower, upper, open_top: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(point, inward normal) of the faces of an axis-aligned box."""
+    lower, upper = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
+    planes = []
+    for axis in range(3):
+        for corner, sign in ((lower, 1.0), (upper, -1.0)):
+            if open_top and axis == 2 and sign < 0:
+                continue
+            normal = np.zeros(3)
+            normal[axis] = sign
+            planes.append((corner.copy(), normal))
+    return planes
+
+
+def read_mesh(path: str | Path, scale: float = 1.0, offset=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices (K, 3) m, triangles (F, 3) int) of a surface mesh file; polygons with
+    more than three corners are fanned into triangles. Raises ValueError on a file
+    meshio cannot read or one without surface cells."""
+    import meshio
+
+    try:
+        mesh = meshio.read(str(path))
+    except FileNotFoundError:
+        raise ValueError(f"no such mesh file '{path}'") from None
+    except Exception as exc:  # noqa: BLE001 - meshio raises many types for bad files
+        raise ValueError(f"cannot read mesh '{path}': {exc}") from None
+    faces = []
+    for block in mesh.cells:
+        data = np.asarray(block.data)
+        if block.type == "triangle":
+            faces.append(data)
+        elif block.type in ("quad", "polygon") and data.ndim == 2:
+            for k in range(1, data.shape[1] - 1):
+                faces.append(data[:, [0, k, k + 1]])
+    if not faces:
+        raise ValueError(f"mesh '{path}' has no triangles or polygons (cell types: "
+                         f"{', '.join(b.type for b in mesh.cells) or 'none'})")
+    vertices = np.asarray(mesh.points, dtype=np.float64)
+    if vertices.shape[1] == 2:
+        vertices = np.column_stack([vertices, np.zeros(len(vertices))])
+    vertices = vertices * scale + np.asarray(offset, dtype=np.float64)
+    return vertices, np.concatenate(faces).astype(np.int64)
+
+
+def cylinder_surface(base, axis, radius, length, segments: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """A triangulated tube for display."""
+    axis = np.asarray(axis, dtype=np.float64)
+    helper = np.zeros(3)
+    helper[np.argmin(np.abs(axis))] = 1.0
+    u = np.cross(axis, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(axis, u)
+    angle = np.linspace(0.0, 2.0 * np.pi, segments, endpoint=False)
+    ring = radius * (np.cos(angle)[:, None] * u + np.sin(angle)[:, None] * v)
+    vertices = np.concatenate([base + ring, base + length * axis + ring])
+    k = np.arange(segments)
+    nxt = (k + 1) % segments
+    faces = np.concatenate([np.column_stack([k, nxt, k + segments]),
+                            np.column_stack([nxt, nxt + segments, k + segments])])
+    return vertices, faces
+
+
+def display_meshes(walls: WallSet, extent_lower, extent_upper) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Surfaces of all walls for VTK: planes become squares covering the scene's extent."""
+    lower, upper = np.asarray(extent_lower, dtype=np.float64), np.asarray(extent_upper, dtype=np.float64)
+    centre, half = 0.5 * (lower + upper), 0.5 * float(np.max(upper - lower)) or 1.0
+    from minidem.output.vtk import plane_to_quad
+
+    out = []
+    for point, normal in zip(walls.plane_point, walls.plane_normal):
+        # the square is centred on the projection of the scene's centre onto the plane
+        foot = centre - float(np.dot(centre - point, normal)) * normal
+        out.append(plane_to_quad(foot, normal, half))
+    for c in range(walls.cylinder_base.shape[0]):
+        out.append(cylinder_surface(walls.cylinder_base[c], walls.cylinder_axis[c], walls.cylinder_radius[c],
+                                    walls.cylinder_length[c]))
+    out.extend(walls.meshes)
+    return out

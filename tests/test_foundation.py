@@ -1,0 +1,181 @@
+"""Issue 2's "Must show": the paper's impact end to end, checked against the paper.
+
+Expected values come from Thornton, Cummins & Cleary (2011) (restated with equation
+numbers in ../shared/paper/models.md) or from analytic limits, never from minidem's
+own output.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import (OBLIQUE, PAPER, impact_summary, paper_effective_modulus, paper_mass, run_cli)
+from minidem import analysis, scenario, simulation
+
+MU = PAPER["friction"]
+
+
+def hertz_duration(mass, radius, effective_modulus, speed):
+    """Paper eq 13 (coefficient 2.868, the exact value of the Hertz integral)."""
+    return 2.868 * (mass**2 / (radius * effective_modulus**2 * speed)) ** 0.2
+
+
+# --------------------------------------------------------------------------------------
+# normal impact
+# --------------------------------------------------------------------------------------
+def test_hmd_normal_impact_lasts_the_hertz_time_and_is_elastic():
+    s = impact_summary("hmd", 0.0)
+    expected = hertz_duration(paper_mass(), PAPER["radius"], paper_effective_modulus(), PAPER["speed"])
+    # eq 13; 0.5 % leaves room for the time-step resolution of contact start and end
+    assert s["contact_duration_s"] == pytest.approx(expected, rel=5e-3)
+    # Hertz is elastic and the normal force not damped: Vnr = Vni
+    assert s["en"] == pytest.approx(1.0, abs=1e-6)
+    # eq 16: maximum overlap (15 m V^2 / (16 sqrt(R) E*))^(2/5)
+    overlap = (15 * paper_mass() * PAPER["speed"] ** 2 / (16 * math.sqrt(PAPER["radius"]) * paper_effective_modulus())) ** 0.4
+    assert s["max_overlap_m"] == pytest.approx(overlap, rel=1e-3)
+
+
+# Table 1 of the paper: nu -> (kn, kt) in MN/m for E = 70 GPa, R = 25 mm, Vni = 5 m/s
+TABLE_1 = [
+    (0.0, 100.0, 100.0),
+    (0.5, 126.0, 84.0),
+    (2.0 / 3.0, 160.0, 80.0),
+    (5.0 / 6.0, 259.0, 74.0),
+    (0.3, 108.0, 89.0),
+]
+
+
+@pytest.mark.parametrize("nu, kn_table, kt_table", TABLE_1)
+def test_ls_calibrated_stiffness_reproduces_table_1(nu, kn_table, kt_table):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # nu > 0.5 warns (tested in test_scenario_errors)
+        scene = scenario.load_scene(OBLIQUE, ['contact.law="ls"', f"materials.glass.poisson_ratio={nu!r}"])
+    constants = simulation.Simulation(scene).constants_by_pair[(0, 0)]
+    assert constants["normal_stiffness"] / 1e6 == pytest.approx(kn_table, abs=1.0)
+    # kt = kappa kn with kappa = 2 (1 - nu) / (2 - nu) (eq 10): the table's last column
+    assert constants["tangential_stiffness"] / 1e6 == pytest.approx(kt_table, abs=1.0)
+
+
+def test_ls_normal_impact_lasts_half_a_spring_period():
+    scene = scenario.load_scene(OBLIQUE, ['contact.law="ls"', "impact.angle_deg=0.0"])
+    sim = simulation.Simulation(scene)
+    s = analysis.summary(sim.run())
+    kn = sim.constants_by_pair[(0, 0)]["normal_stiffness"]
+    # eq 27: a linear spring's contact lasts pi sqrt(m/kn) at any speed
+    assert s["contact_duration_s"] == pytest.approx(math.pi * math.sqrt(paper_mass() / kn), rel=5e-3)
+    # ...which the calibration (eq 28) makes equal to the Hertz duration (eq 13)
+    hertz = hertz_duration(paper_mass(), PAPER["radius"], paper_effective_modulus(), PAPER["speed"])
+    assert s["contact_duration_s"] == pytest.approx(hertz, rel=5e-3)
+    assert s["en"] == pytest.approx(1.0, abs=1e-6)
+
+
+# --------------------------------------------------------------------------------------
+# gross sliding: the rigid-body limit (eqs 3-8)
+# --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("law", ["hmd", "ls"])
+def test_gross_sliding_at_60_degrees_matches_rigid_body_theory(law):
+    theta = 60.0
+    s = impact_summary(law, theta)
+    en = s["en"]
+    x = 2.0 * math.tan(math.radians(theta)) / (1.0 + en)
+    assert s["x"] == pytest.approx(x, abs=1e-12)
+    assert s["y1"] == pytest.approx(x - 7.0 * MU, abs=1e-3)  # eq 7
+    assert s["y2"] == pytest.approx(-5.0 * MU, abs=1e-3)  # eq 8
+    assert s["et"] == pytest.approx(1.0 - MU * (1.0 + en) / math.tan(math.radians(theta)), abs=1e-3)  # eq 6
+
+
+# --------------------------------------------------------------------------------------
+# energy
+# --------------------------------------------------------------------------------------
+@pytest.mark.parametrize("law", ["hmd", "ls"])
+@pytest.mark.parametrize("angle", [0.0, 30.0, 60.0])
+def test_frictionless_impact_conserves_energy_and_never_spins(law, angle):
+    scene = scenario.load_scene(OBLIQUE, [f'contact.law="{law}"', f"impact.angle_deg={angle}",
+                                          "contact.friction=0.0"])
+    result = simulation.Simulation(scene).run()
+    # no tangential force: the elastic normal impact returns all its energy (velocity
+    # Verlet is symplectic, the residual is the O(dt^2) error at the last contact step)
+    assert analysis.energy_ratio(result) == pytest.approx(1.0, abs=1e-6)
+    # and the tangential velocity is untouched, the sphere cannot start spinning
+    assert np.array_equal(result.angular_velocity, np.zeros((1, 3)))
+    if angle:
+        assert analysis.rebound(result)["et"] == pytest.approx(1.0, abs=1e-12)
+
+
+ANGLES = [0.5, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 15.0, 20.0, 25.0, 30.0, 35.0, 40.0, 50.0, 60.0,
+          70.0, 80.0, 85.0]
+
+
+@pytest.mark.parametrize("law", ["hmd", "ls"])
+def test_incremental_laws_never_create_energy(law):
+    # Incremental laws only ever store or dissipate tangential work (paper section 5);
+    # 1e-9 is far above the round-off of the energy sums.
+    ratios = {angle: impact_summary(law, angle)["energy_ratio"] for angle in ANGLES}
+    created = {a: r for a, r in ratios.items() if r > 1.0 + 1e-9}
+    assert not created, f"{law} created energy at {created}"
+    # friction must actually dissipate something at oblique angles, else the test is void
+    assert min(ratios.values()) < 0.99
+
+
+# --------------------------------------------------------------------------------------
+# summary.json and the command line
+# --------------------------------------------------------------------------------------
+# issue 2: "OUT/summary.json keys (stable, other tools will read them)"
+STABLE_KEYS = ("law", "angle_deg", "speed", "en", "et", "x", "y1", "y2", "contact_duration_s", "max_overlap_m",
+               "energy_ratio", "steps", "dt_s", "wall_time_s")
+
+
+def test_summary_stable_keys():
+    assert analysis.SUMMARY_KEYS == STABLE_KEYS
+    s = impact_summary("hmd", 30.0)
+    assert list(s)[:len(STABLE_KEYS)] == list(STABLE_KEYS)
+    assert s["law"] == "hmd" and s["angle_deg"] == 30.0 and s["speed"] == PAPER["speed"]
+    for key in STABLE_KEYS[3:]:
+        assert isinstance(s[key], (int, float)) and math.isfinite(s[key]), key
+    assert isinstance(s["steps"], int) and s["steps"] > 0
+    assert s["steps"] * s["dt_s"] >= s["contact_duration_s"]
+
+
+def test_minidem_run_end_to_end(tmp_path):
+    out = tmp_path / "out"
+    done = run_cli("run", OBLIQUE, "--out", out)
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr
+    for row in ("en", "et", "y1", "y2", "contact duration", "max overlap", "peak normal force", "energy ratio"):
+        assert row in done.stdout
+    written = json.loads((out / "summary.json").read_text())
+    assert set(STABLE_KEYS) <= set(written)
+    assert written["law"] == "hmd" and written["angle_deg"] == 30.0  # the scenario file's values
+
+
+def test_minidem_run_set_overrides(tmp_path):
+    out = tmp_path / "out"
+    done = run_cli("run", OBLIQUE, "--out", out, "--set", "contact.law=ls", "--set", "impact.angle_deg=60",
+                   "--set", "contact.friction=0.2", "--quiet")
+    assert done.returncode == 0, done.stderr
+    assert done.stdout == ""  # --quiet
+    written = json.loads((out / "summary.json").read_text())
+    assert written["law"] == "ls" and written["angle_deg"] == 60.0
+    assert written["law_parameters"]["friction"] == 0.2
+    # gross sliding with the overridden friction (eq 8): the override reached the physics
+    assert written["y2"] == pytest.approx(-5.0 * 0.2, abs=1e-3)
+
+
+def test_second_run_reuses_the_compile_cache(tmp_path):
+    done = run_cli("run", OBLIQUE, "--out", tmp_path, "--quiet", "--set", "contact.law=hmd")
+    assert done.returncode == 0, done.stderr
+    # The run compiled (or found) a kernel specialised for hmd and numba wrote its cache
+    # index beside it: the next process loads machine code instead of compiling.
+    scene = scenario.load_scene(OBLIQUE, ['contact.law="hmd"'])
+    kernel = simulation.Simulation(scene).kernel  # imports the specialised module, compiles nothing
+    for function in (kernel.advance, kernel.compute_forces):
+        cache = function._cache
+        index = list(Path(cache._cache_path).glob(f"{kernel.__name__}.{function.__name__}-*.nbi"))
+        assert index, f"no numba cache index for {kernel.__name__}.{function.__name__} in {cache._cache_path}"
+        assert list(index[0].parent.glob(index[0].name.replace(".nbi", ".*.nbc")))

@@ -1,0 +1,312 @@
+"""The law registry: discovery through entry points, and faults in plugins.
+
+Every fault a plugin can have (it does not import, its hook raises, it declares a bad
+law, its force function does not compile or returns NaN) must be reported with the
+plugin's and the law's name and the reason, and must leave every other law usable.
+
+Fake plugins are real modules written to a temporary folder on sys.path. Entry-point
+discovery is exercised for real by a ``*.dist-info`` folder beside them:
+importlib.metadata reads its ``entry_points.txt`` exactly as it reads an installed
+package's, without the cost of a pip install.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import sys
+import textwrap
+import tomllib
+
+import pytest
+
+import minidem
+from conftest import OBLIQUE, run_cli
+from minidem import analysis, laws, scenario, simulation
+
+FAKE_COMMON = '''
+import math
+
+import numba
+
+from minidem import hookimpl
+from minidem.laws import ContactLaw, Parameter
+
+
+@numba.njit(cache=True)
+def spring_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+                 normal_velocity, tangential_increment, tangential_velocity, history):
+    return constants[0] * normal_overlap, 0.0, 0.0, 0.0
+
+
+@numba.njit(cache=True)
+def nan_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+              normal_velocity, tangential_increment, tangential_velocity, history):
+    return constants[0] * normal_overlap * math.nan, 0.0, 0.0, 0.0
+
+
+@numba.njit
+def uncompilable_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+                       normal_velocity, tangential_increment, tangential_velocity, history):
+    return object(), 0.0, 0.0, 0.0
+
+
+def plain_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+                normal_velocity, tangential_increment, tangential_velocity, history):
+    return constants[0] * normal_overlap, 0.0, 0.0, 0.0
+
+
+def prepare(pair, params):
+    return {"stiffness": params["stiffness"]}
+
+
+def failing_prepare(pair, params):
+    raise ValueError("no stiffness for these materials")
+
+
+def law(name, force=spring_force, **changes):
+    fields = dict(name=name, description="linear normal spring for registry tests",
+                  parameters=(Parameter("stiffness", 1e8, "N/m", "normal stiffness", low=0.0, low_open=True),),
+                  constants=("stiffness",), history=(), prepare=prepare, force=force, frictional=False)
+    fields.update(changes)
+    return ContactLaw(**fields)
+'''
+
+FAKE_PLUGINS = {
+    "fake_good": '''
+        @hookimpl
+        def minidem_register_laws(registry):
+            registry.add(law("fake_spring"))
+            registry.add(law("fake_nan", force=nan_force))
+            registry.add(law("fake_uncompilable", force=uncompilable_force))
+            registry.add(law("fake_bad_prepare", prepare=failing_prepare))
+    ''',
+    "fake_bad_laws": '''
+        @hookimpl
+        def minidem_register_laws(registry):
+            registry.add(law("fake_plain", force=plain_force))
+            registry.add(law("Bad-Name"))
+            registry.add(law("hmd"))
+            registry.add(law("fake_bad_default", parameters=(
+                Parameter("stiffness", -1.0, "N/m", "normal stiffness", low=0.0, low_open=True),)))
+            registry.add(law("fake_list_parameters", parameters=[]))
+            registry.add({"name": "fake_dict"})
+            registry.add(law("fake_survivor"))
+    ''',
+    "fake_raises": '''
+        @hookimpl
+        def minidem_register_laws(registry):
+            registry.add(law("fake_before_raise"))
+            raise RuntimeError("plugin exploded while registering")
+    ''',
+    "fake_wrong_signature": '''
+        @hookimpl
+        def minidem_register_laws(registry, unknown_argument):
+            registry.add(law("fake_never"))
+    ''',
+    "fake_import_error": '''
+        import a_module_that_does_not_exist_anywhere
+    ''',
+}
+
+
+@pytest.fixture(scope="module")
+def fake_site(tmp_path_factory):
+    """A folder on sys.path holding the fake plugin modules (importable, not announced)."""
+    site = tmp_path_factory.mktemp("site")
+    for name, body in FAKE_PLUGINS.items():
+        head = "" if name == "fake_import_error" else FAKE_COMMON
+        (site / f"{name}.py").write_text(head + textwrap.dedent(body))
+    sys.path.insert(0, str(site))
+    importlib.invalidate_caches()
+    yield site
+    sys.path.remove(str(site))
+
+
+@pytest.fixture(scope="module")
+def fake_distribution(tmp_path_factory, fake_site):
+    """A folder holding only ``minidem_fakeplugin-1.2.3.dist-info``: on sys.path, it makes
+    importlib.metadata announce four of the fake modules as ``minidem`` entry points."""
+    folder = tmp_path_factory.mktemp("dist")
+    dist = folder / "minidem_fakeplugin-1.2.3.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: minidem-fakeplugin\nVersion: 1.2.3\n")
+    # "bad_laws" sorts before "builtin": it must still not take the built-in 'hmd'
+    (dist / "entry_points.txt").write_text(
+        "[minidem]\ngood = fake_good\nbad_laws = fake_bad_laws\nraises = fake_raises\n"
+        "missing = fake_import_error\n")
+    return folder
+
+
+@pytest.fixture
+def announced(fake_distribution, monkeypatch):
+    monkeypatch.syspath_prepend(str(fake_distribution))
+    return fake_distribution
+
+
+def load(*names):
+    return laws.load_registry(extra_plugins=tuple(importlib.import_module(n) for n in names))
+
+
+def broken_by_law(registry):
+    return {b.law: b for b in registry.broken}
+
+
+def assert_builtin_laws_run(registry):
+    """The paper's HMD impact still runs from this registry (every other law still works)."""
+    scene = scenario.load_scene(OBLIQUE, ["impact.angle_deg=60"])
+    s = analysis.summary(simulation.Simulation(scene, registry=registry).run())
+    assert s["y2"] == pytest.approx(-0.5, abs=1e-3)  # gross sliding, eq 8 with mu = 0.1
+
+
+# --------------------------------------------------------------------------------------
+def test_builtin_laws_come_through_minidem_entry_point():
+    points = {ep.name: ep for ep in importlib.metadata.entry_points(group="minidem")}
+    assert points["builtin"].value == "minidem.builtin_laws"
+    registry = laws.load_registry()
+    for name in ("hmd", "ls", "hm", "lth", "hmdns_integral", "hmdns_integral_reset"):
+        entry = registry.entry(name)
+        assert (entry.plugin, entry.distribution, entry.version) == ("builtin", "minidem", minidem.__version__)
+    assert not [b for b in registry.broken if b.plugin.startswith("builtin")]
+
+
+def test_aliases_resolve_to_the_law():
+    registry = laws.load_registry()
+    assert registry.get("H-MDns").name == "hmdns_integral"  # the paper's name
+    assert registry.get("HMD").name == "hmd"
+
+
+def test_unknown_law_lists_the_available_ones_and_the_closest():
+    with pytest.raises(laws.LawError) as info:
+        laws.load_registry().get("hmdd")
+    message = str(info.value)
+    assert "'hmdd'" in message and "Did you mean 'hmd'?" in message
+    assert "Available: " in message and "ls" in message and "lth" in message
+
+
+def test_bad_declarations_are_reported_one_by_one(fake_site):
+    registry = load("fake_bad_laws")
+    broken = broken_by_law(registry)
+    assert "numba-compiled" in broken["fake_plain"].reason
+    assert "not a lower-case identifier" in broken["Bad-Name"].reason
+    assert "already taken by plugin 'builtin' (minidem)" in broken["hmd"].reason
+    assert "default of parameter 'stiffness'" in broken["fake_bad_default"].reason
+    assert "must be > 0" in broken["fake_bad_default"].reason
+    assert "tuple of minidem.laws.Parameter" in broken["fake_list_parameters"].reason
+    assert "expects a minidem.laws.ContactLaw, got dict" in broken[None].reason
+    assert all(b.plugin == "fake_bad_laws" for b in registry.broken)
+    # the good law after the bad ones is kept, the built-in hmd is not displaced
+    assert registry.entry("fake_survivor").plugin == "fake_bad_laws"
+    assert registry.entry("hmd").plugin == "builtin"
+    with pytest.raises(laws.LawError, match="fake_plain.*fake_bad_laws.*is broken.*numba"):
+        registry.get("fake_plain")
+    assert_builtin_laws_run(registry)
+
+
+def test_a_hook_that_raises_is_reported(fake_site):
+    registry = load("fake_raises")
+    [problem] = registry.broken
+    assert problem.plugin == "fake_raises"
+    assert "RuntimeError: plugin exploded while registering" in problem.reason
+    assert "fake_raises.py" in problem.reason  # where it happened
+    assert_builtin_laws_run(registry)
+
+
+def test_a_hook_with_a_wrong_signature_is_reported(fake_site):
+    registry = load("fake_wrong_signature")
+    [problem] = registry.broken
+    assert problem.plugin == "fake_wrong_signature"
+    assert "invalid hook implementation" in problem.reason and "unknown_argument" in problem.reason
+    assert "fake_never" not in registry.names()
+
+
+def test_entry_point_discovery_reports_import_errors_and_keeps_the_rest(announced):
+    registry = laws.load_registry()
+    entry = registry.entry("fake_spring")
+    assert (entry.plugin, entry.distribution, entry.version) == ("good", "minidem-fakeplugin", "1.2.3")
+    [missing] = [b for b in registry.broken if b.plugin.startswith("missing")]
+    assert missing.plugin == "missing (minidem-fakeplugin)"
+    assert "ModuleNotFoundError" in missing.reason and "a_module_that_does_not_exist_anywhere" in missing.reason
+    assert any(b.plugin == "raises" and "plugin exploded" in b.reason for b in registry.broken)
+    # the built-in law keeps its name although 'bad_laws' sorts before 'builtin'
+    assert registry.entry("hmd").plugin == "builtin"
+    taken = [b for b in registry.broken if b.law == "hmd"]
+    assert [b.plugin for b in taken] == ["bad_laws"] and "already taken by plugin 'builtin'" in taken[0].reason
+    assert_builtin_laws_run(registry)
+
+
+def _fake_scene(law_name, registry, monkeypatch):
+    """The paper's impact with a fake law (no friction parameter)."""
+    monkeypatch.setattr(laws, "_REGISTRY", registry)  # the scenario validates against it
+    data = tomllib.loads(OBLIQUE.read_text())
+    data["contact"] = {"law": law_name}
+    data["impact"]["angle_deg"] = 0.0
+    return scenario.build_scene(data, "fake.toml")
+
+
+def test_a_plugin_law_runs_in_a_scenario(fake_site, monkeypatch):
+    registry = load("fake_good")
+    result = simulation.Simulation(_fake_scene("fake_spring", registry, monkeypatch), registry=registry).run()
+    # a linear spring of 1e8 N/m on m = 0.1734 kg: contact lasts pi sqrt(m/k) (eq 27)
+    m = float(result.scene.mass[0])
+    s = analysis.summary(result)
+    assert s["contact_duration_s"] == pytest.approx(3.14159265 * (m / 1e8) ** 0.5, rel=5e-3)
+    assert s["en"] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_a_force_function_that_does_not_compile_names_law_and_plugin(fake_site, monkeypatch, tmp_path):
+    monkeypatch.setenv("MINIDEM_CACHE_DIR", str(tmp_path))  # keep the failed kernel out of the user's cache
+    registry = load("fake_good")
+    sim = simulation.Simulation(_fake_scene("fake_uncompilable", registry, monkeypatch), registry=registry)
+    with pytest.raises(laws.LawError) as info:
+        sim.run()
+    message = str(info.value)
+    assert "law 'fake_uncompilable'" in message and "plugin 'fake_good'" in message
+    assert "does not compile" in message and "object" in message
+    monkeypatch.delenv("MINIDEM_CACHE_DIR")
+    assert_builtin_laws_run(registry)
+
+
+def test_a_failing_prepare_names_law_materials_and_cause(fake_site, monkeypatch):
+    registry = load("fake_good")
+    with pytest.raises(laws.LawError, match="fake_bad_prepare.*prepare\\(\\) failed.*glass.*no stiffness"):
+        simulation.Simulation(_fake_scene("fake_bad_prepare", registry, monkeypatch), registry=registry)
+
+
+def test_a_nan_force_stops_the_run_at_that_step_naming_the_contact(fake_site, monkeypatch):
+    registry = load("fake_good")
+    sim = simulation.Simulation(_fake_scene("fake_nan", registry, monkeypatch), registry=registry)
+    with pytest.raises(simulation.RunFailure) as info:
+        sim.run()
+    message = str(info.value)
+    assert "law 'fake_nan'" in message and "non-finite force" in message
+    assert "particle 0 on wall 0" in message and "at step 1 " in message
+
+
+def test_minidem_laws_lists_plugins_with_package_version_and_broken_ones(fake_site, fake_distribution):
+    env = {"PYTHONPATH": f"{fake_site}:{fake_distribution}"}
+    done = run_cli("laws", env=env)
+    assert done.returncode == 0, done.stderr
+    assert "fake_spring  [minidem-fakeplugin 1.2.3, plugin 'good']" in done.stdout
+    assert "hmd (aliases: hertz_mindlin_deresiewicz)  [minidem 0.1.0, plugin 'builtin']" in done.stdout
+    assert "BROKEN plugin 'missing (minidem-fakeplugin)': ModuleNotFoundError" in done.stdout
+    assert "BROKEN plugin 'bad_laws' law 'Bad-Name'" in done.stdout
+    payload = json.loads(run_cli("laws", "--json", env=env).stdout)
+    by_name = {law["name"]: law for law in payload["laws"]}
+    assert by_name["fake_spring"]["package"] == "minidem-fakeplugin"
+    assert by_name["fake_spring"]["parameters"][0] == {
+        "name": "stiffness", "default": 1e8, "unit": "N/m", "bounds": "(0, inf]", "required": False,
+        "description": "normal stiffness"}
+    assert {"plugin": "raises", "law": None} in [{k: b[k] for k in ("plugin", "law")} for b in payload["broken"]]
+
+
+def test_cli_reports_an_uncompilable_plugin_law_as_bad_input(fake_site, fake_distribution, tmp_path):
+    scene_file = tmp_path / "fake.toml"
+    data = OBLIQUE.read_text().replace('law = "hmd"', 'law = "fake_uncompilable"').replace("friction = 0.1", "")
+    scene_file.write_text(data)
+    done = run_cli("run", scene_file, "--out", tmp_path / "out",
+                   env={"PYTHONPATH": f"{fake_site}:{fake_distribution}", "MINIDEM_CACHE_DIR": str(tmp_path / "cache")})
+    assert done.returncode == 2
+    assert "Traceback" not in done.stderr
+    assert "law 'fake_uncompilable' from plugin 'good' (minidem-fakeplugin)" in done.stderr
+    assert not (tmp_path / "out" / "summary.json").exists()

@@ -1,0 +1,188 @@
+"""The malformed-input battery (issues 2 and 6): one case per kind of mistake.
+
+Every case must exit with code 2 and print one message that names the file, the key
+(or line) and what is valid, and no Python traceback. The cases run through
+``minidem.cli.main`` in-process (fast); two run as real processes to check the exit
+code and stderr a user sees.
+"""
+
+from __future__ import annotations
+
+import re
+import textwrap
+
+import pytest
+
+from conftest import OBLIQUE, run_cli
+from minidem import cli, scenario
+
+BASE = OBLIQUE.read_text()
+
+
+def edit(old: str, new: str) -> str:
+    assert old in BASE, old
+    return BASE.replace(old, new)
+
+
+SPHERES = textwrap.dedent("""
+    [materials.glass]
+    youngs_modulus = 70e9
+    poisson_ratio = 0.3
+    density = 2650.0
+
+    [contact]
+    law = "hmd"
+    friction = 0.1
+
+    [[walls]]
+    normal = [0.0, 0.0, 1.0]
+    material = "glass"
+
+    [[particles]]
+    position = [0.0, 0.0, {z0}]
+    radius = 0.005
+    material = "glass"
+
+    [[particles]]
+    position = [0.0, 0.0, {z1}]
+    radius = 0.005
+    material = "glass"
+
+    [run]
+    dt = 1e-7
+    end_time = 1e-5
+    """)
+
+# id -> (scenario text or None for the base file, extra CLI args, fragments the message must hold)
+CASES = {
+    "toml_syntax_error": ("[materials.glass\nyoungs_modulus = 1\n", [],
+                          ["TOML syntax error", "Expected ']'", "line 1"]),
+    "duplicate_key": (BASE + "\n[run]\ndt = 1e-7\n", [], ["TOML syntax error", "line 3"]),
+    "wrong_type": (edit("radius = 0.025 ", 'radius = "big"'), [],
+                   ["impact.radius", "expected a number (m)", "'big'"]),
+    "wrong_type_vector": (edit("normal = [0.0, 0.0, 1.0]", "normal = [0.0, 1.0]"), [],
+                          ["walls[0].normal", "expected a list of 3 numbers"]),
+    "wrong_type_section": (None, ["--set", "impact=3"], ["impact", "expected a table, got int"]),
+    "unknown_key": (edit("speed = 5.0 ", "sped = 5.0 "), [],
+                    ["impact.sped", "unknown key", "did you mean 'speed'?", "valid keys: material, radius, speed"]),
+    "unknown_section": (BASE + "\n[runn]\ndt = 1e-7\n", [],
+                        ["runn", "unknown section", "did you mean 'run'?", "valid sections: materials"]),
+    "unknown_choice": (edit('dt = "auto" ', 'stop = "seperation"\ndt = "auto" '), [],
+                       ["run.stop", "must be one of 'separation', 'time'", "did you mean 'separation'?"]),
+    "missing_required_key": (re.sub(r"density = .*\n", "", BASE), [],
+                             ["materials.glass.density", "missing required key", "mass density, kg/m^3"]),
+    "missing_materials": (re.sub(r"\[materials.glass\](.*\n){4}", "", BASE), [],
+                          ["materials", "at least one material is needed", "unknown material 'glass'"]),
+    "missing_contact": (re.sub(r"\[contact\](.*\n){3}", "", BASE), [],
+                        ["contact", "missing [contact] section", 'law = "..."']),
+    "unknown_material": (edit('[impact]\nmaterial = "glass"', '[impact]\nmaterial = "glas"'), [],
+                         ["impact.material", "unknown material 'glas'", "did you mean 'glass'?", "defined: glass"]),
+    "unknown_law": (None, ["--set", "contact.law=hdm"],
+                    ["contact.law", "unknown contact law 'hdm'", "Did you mean 'hm'?",
+                     "Available: hm, hmd, hmdns_integral, hmdns_integral_reset, ls, lth"]),
+    "unknown_law_parameter": (None, ["--set", "contact.frcition=0.2"],
+                              ["contact", "unknown parameter 'frcition' for law 'hmd'", "did you mean 'friction'?",
+                               "valid: friction, restitution, reversal_check"]),
+    "missing_law_parameter": (edit("friction = 0.1\n", ""), [],
+                              ["contact", "law 'hmd' needs parameter 'friction'", "bounds [0, inf]"]),
+    "negative_radius": (edit("radius = 0.025 ", "radius = -0.025 "), [], ["impact.radius", "must be > 0 m", "-0.025"]),
+    "zero_particle_radius": (SPHERES.format(z0=0.1, z1=0.2).replace("radius = 0.005", "radius = 0.0", 1), [],
+                             ["particles[0].radius", "must be > 0 m, got 0"]),
+    "negative_friction": (None, ["--set", "contact.friction=-0.1"],
+                          ["contact", "'friction' must be >= 0, got -0.1", "bounds [0, inf]"]),
+    "poisson_ratio_minus_one": (edit("poisson_ratio = 0.3", "poisson_ratio = -1.0"), [],
+                                ["materials.glass.poisson_ratio", "must be > -1, got -1"]),
+    "poisson_ratio_above_one": (edit("poisson_ratio = 0.3", "poisson_ratio = 1.2"), [],
+                                ["materials.glass.poisson_ratio", "must be <= 1, got 1.2"]),
+    "non_positive_modulus": (edit("youngs_modulus = 70e9", "youngs_modulus = 0"), [],
+                             ["materials.glass.youngs_modulus", "must be > 0 Pa"]),
+    "zero_dt": (edit('dt = "auto" ', "dt = 0.0 "), [], ["run.dt", "must be > 0 s, got 0"]),
+    "dt_wrong_word": (edit('dt = "auto" ', 'dt = "automatic" '), [], ["run.dt", 'expected a number or "auto" (s)']),
+    "stop_time_without_end_time": (edit('dt = "auto" ', 'dt = "auto"\nstop = "time"'), [],
+                                   ["run.end_time", 'required when run.stop = "time"']),
+    "grazing_90_degrees": (None, ["--set", "impact.angle_deg=90"],
+                           ["impact.angle_deg", "must be < 90 deg"]),
+    "impact_wall_missing": (None, ["--set", "impact.wall=3"], ["impact.wall", "wall index 3 does not exist"]),
+    "zero_wall_normal": (edit("normal = [0.0, 0.0, 1.0]", "normal = [0.0, 0.0, 0.0]"), [],
+                         ["walls[0].normal", "must not be the zero vector"]),
+    "empty_scene": (re.sub(r"\[impact\](.*\n){5}", "", BASE), [],
+                    ["the scene has no particles", "add an [impact] block or [[particles]]"]),
+    "particle_behind_wall": (SPHERES.format(z0=-0.01, z1=0.1), [],
+                             ["particles[0]", "centre is on or behind wall 0", "flip the wall's normal"]),
+    "particle_inside_wall": (SPHERES.format(z0=0.004, z1=0.1), [],
+                             ["particles[0]", "overlaps wall 0", "by 0.001 m", "move it"]),
+    "overlapping_particles": (SPHERES.format(z0=0.1, z1=0.105), [],
+                              ["particles[0]: overlaps particles[1] by 0.005 m", "at least the sum of their radii"]),
+    "set_without_equals": (None, ["--set", "impact.angle_deg"],
+                           ["--set 'impact.angle_deg'", "expected KEY=VALUE", "--set impact.angle_deg=30"]),
+    "set_empty_key_part": (None, ["--set", "impact..angle_deg=3"], ["--set", "empty key part"]),
+    "set_into_a_value": (None, ["--set", "impact.angle_deg.x=3"], ["'impact.angle_deg' is a value, not a table"]),
+    "set_wrong_type": (None, ["--set", "impact.angle_deg=steep"], ["impact.angle_deg", "expected a number (deg)"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_bad_input_is_refused_with_exit_2_and_a_useful_message(case, tmp_path, capsys):
+    text, extra, fragments = CASES[case]
+    path = tmp_path / f"{case}.toml"
+    path.write_text(BASE if text is None else text)
+    code = cli.main(["run", str(path), "--out", str(tmp_path / "out"), *extra])
+    captured = capsys.readouterr()
+    assert code == 2, captured
+    message = captured.err
+    assert message.startswith("minidem: error: "), message
+    assert "Traceback" not in message and "internal error" not in message
+    if not case.startswith("set_without") and not case.startswith("set_empty") and not case.startswith("set_into"):
+        assert f"{case}.toml" in message, message  # the file is named (--set syntax errors name the option)
+    for fragment in fragments:
+        assert fragment in message, f"{fragment!r} not in {message!r}"
+    assert not (tmp_path / "out" / "summary.json").exists()
+    # an out-of-range Poisson ratio is refused, not also "accepted with a warning"
+    assert "warning" not in message
+
+
+def test_nonexistent_file(tmp_path, capsys):
+    code = cli.main(["run", str(tmp_path / "nowhere.toml")])
+    assert code == 2
+    assert capsys.readouterr().err == f"minidem: error: {tmp_path / 'nowhere.toml'}: no such scenario file\n"
+
+
+def test_all_errors_of_a_file_are_reported_at_once(tmp_path, capsys):
+    path = tmp_path / "many.toml"
+    path.write_text(edit("radius = 0.025 ", "radius = -1.0 ").replace("speed = 5.0 ", "sped = 5.0 "))
+    assert cli.main(["run", str(path)]) == 2
+    message = capsys.readouterr().err
+    assert "impact.radius: must be > 0 m" in message and "impact.sped: unknown key" in message
+    assert "impact.speed: missing required key" in message
+
+
+@pytest.mark.parametrize("nu", [0.5 + 1e-9, 2.0 / 3.0, 5.0 / 6.0, 1.0])
+def test_poisson_ratio_up_to_one_is_accepted_with_a_warning(nu):
+    # issue 2: nu in (0.5, 1] is unphysical but the paper's Table 1 uses 2/3 and 5/6
+    with pytest.warns(UserWarning, match=r"poisson_ratio = .* > 0\.5 is not physical"):
+        scene = scenario.load_scene(OBLIQUE, [f"materials.glass.poisson_ratio={nu!r}"])
+    assert scene.materials[0].poisson_ratio == nu
+
+
+def test_physical_poisson_ratio_does_not_warn(recwarn):
+    scenario.load_scene(OBLIQUE, ["materials.glass.poisson_ratio=0.5"])
+    scenario.load_scene(OBLIQUE, ["materials.glass.poisson_ratio=-0.9"])
+    assert not [w for w in recwarn if "poisson" in str(w.message)]
+
+
+def test_a_real_process_exits_2_without_traceback_and_debug_shows_one(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text(edit("speed = 5.0 ", "sped = 5.0 "))
+    done = run_cli("run", path)
+    assert done.returncode == 2 and done.stdout == ""
+    assert "bad.toml: invalid scenario" in done.stderr and "did you mean 'speed'?" in done.stderr
+    assert "Traceback" not in done.stderr
+    debug = run_cli("--debug", "run", path)
+    assert "Traceback" in debug.stderr and "ScenarioError" in debug.stderr
+
+
+def test_bad_set_syntax_in_a_real_process():
+    done = run_cli("run", OBLIQUE, "--set", "contact.law")
+    assert done.returncode == 2
+    assert done.stderr == ("minidem: error: --set 'contact.law': expected KEY=VALUE, e.g. "
+                           "--set impact.angle_deg=30\n")
