@@ -123,6 +123,17 @@ def command_bench(args) -> int:
     return bench.command(args)
 
 
+def command_verify(args) -> int:
+    from minidem import verify
+
+    out = args.out or Path("out") / f"verify-{args.law}"
+    checks = verify.run_battery(args.law, args.set, out)
+    print(f"minidem verify {args.law}")
+    print(verify.format_table(checks))
+    print(f"  report: {out / 'verify.json'}, {out / 'verify.png'}")
+    return EXIT_FAILURE if any(c.passed is False for c in checks) else EXIT_OK
+
+
 def build_parser() -> argparse.ArgumentParser:
     from minidem import __version__
 
@@ -144,6 +155,13 @@ def build_parser() -> argparse.ArgumentParser:
     show = sub.add_parser("laws", help="list installed contact laws and broken plugins")
     show.add_argument("--json", action="store_true", help="machine-readable output")
     show.set_defaults(handler=command_laws)
+
+    check = sub.add_parser("verify", help="run the paper's verification battery on a contact law")
+    check.add_argument("law", help="law name (see `minidem laws`)")
+    check.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                       help="override the battery's scenario, e.g. --set contact.my_stiffness=1e8")
+    check.add_argument("--out", type=Path, default=None, help="report directory (default out/verify-LAW)")
+    check.set_defaults(handler=command_verify)
 
     docs = sub.add_parser("docs", help="print the scenario-file reference (markdown)")
     docs.add_argument("--write", type=Path, help="write it to this file instead")
