@@ -1,0 +1,96 @@
+"""The independent reference solution (minidem.reference) and the engine against it.
+
+Expected values come from closed forms: Hertz's normal impact (paper eqs 12-13, with the
+exact duration coefficient), the linear spring's half period (eq 27), the constant force
+obliquity of LS at kappa = 2/7 (section 4: et = 3/7), and rigid-body gross sliding
+(eqs 6-8). The engine target (1e-4 absolute in y1, y2, et) is issue 5's.
+"""
+
+import math
+
+import pytest
+
+from minidem import reference
+from minidem.reference import Impact, solve
+
+PAPER = Impact()  # R = 25 mm, 2650 kg/m3, E = 70 GPa, nu = 0.3, mu = 0.1, V = 5 m/s
+
+
+def test_hertz_normal_impact_duration_and_overlap():
+    s = solve(Impact(law="hmd", angle_deg=0.0), 1e-12)
+    m, v = PAPER.mass, PAPER.speed
+    # delta_max = (15 m V^2 / (16 sqrt(R) E*))^(2/5)  (paper eq 12)
+    delta_max = (15 * m * v**2 / (16 * math.sqrt(PAPER.radius) * PAPER.effective_modulus)) ** 0.4
+    # tc = 2 delta_max / V * int_0^1 dx / sqrt(1 - x^(5/2)) = (4/5) B(2/5, 1/2) delta_max / V
+    # (energy integral of m u^2/2 + (8/15) E* sqrt(R) d^(5/2); 2.9432 delta_max / V, eq 13's 2.868 form)
+    tc = 0.8 * math.gamma(0.4) * math.gamma(0.5) / math.gamma(0.9) * delta_max / v
+    assert s.max_overlap == pytest.approx(delta_max, rel=1e-9)
+    assert s.contact_duration == pytest.approx(tc, rel=1e-9)
+    assert s.en == pytest.approx(1.0, abs=1e-9)  # elastic
+    assert s.y2 == 0.0 and s.y1 == 0.0  # no tangential motion, no spin
+
+
+def test_linear_normal_impact_half_period():
+    s = solve(Impact(law="ls", angle_deg=0.0), 1e-12)
+    kn = PAPER.ls_normal_stiffness
+    assert kn == pytest.approx(108e6, abs=1e6)  # Table 1, kappa = 0.8235 row
+    assert s.contact_duration == pytest.approx(math.pi * math.sqrt(PAPER.mass / kn), rel=1e-9)  # eq 27
+    assert s.max_overlap == pytest.approx(PAPER.speed * math.sqrt(PAPER.mass / kn), rel=1e-9)
+    assert s.en == pytest.approx(1.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("angle", [2.0, 5.0, 10.0, 15.0])
+def test_linear_spring_kappa_two_sevenths_gives_three_sevenths(angle):
+    # kappa = 2/7: tangential and normal periods equal, Ft/Fn = (2/7) tan(theta) < mu
+    # below ~19 deg, no sliding, et = 3/7 exactly (paper section 4, Fig 4)
+    s = solve(Impact(law="ls", angle_deg=angle, stiffness_ratio=2.0 / 7.0), 1e-12)
+    assert s.et == pytest.approx(3.0 / 7.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("law", reference.LAWS)
+def test_gross_sliding_matches_rigid_body_theory(law):
+    # sliding throughout at 60 deg for every law: eqs 6-8 hold exactly, not just approximately
+    mu, angle = PAPER.friction, 60.0
+    s = solve(Impact(law=law, angle_deg=angle), 1e-12)
+    assert [e for _, e in s.events if e.startswith("start")] == ["start in slide"] or law == "hmdns_integral"
+    assert s.y1 == pytest.approx(s.x - 7 * mu, abs=1e-9)
+    assert s.y2 == pytest.approx(-5 * mu, abs=1e-9)
+    assert s.et == pytest.approx(1 - mu * (1 + s.en) / math.tan(math.radians(angle)), abs=1e-9)
+
+
+@pytest.mark.parametrize("law", reference.LAWS)
+def test_two_tolerances_agree_far_below_the_reported_errors(law):
+    # the engine errors reported in docs/benchmarks.md are >= 1e-8; the reference at
+    # rtol 1e-10 and 1e-12 must agree far below that
+    for angle in (1.0, 5.0, 20.0):
+        coarse = solve(Impact(law=law, angle_deg=angle), 1e-10)
+        fine = solve(Impact(law=law, angle_deg=angle), 1e-12)
+        for k in ("en", "et", "y1", "y2"):
+            assert abs(getattr(coarse, k) - getattr(fine, k)) < 2e-9, (law, angle, k)
+
+
+def test_hmd_switches_are_events():
+    # at 5 deg HMD starts in the eq 19 special case, unloads when the surface velocity
+    # reverses and slides near the end (paper Fig 11): every switch is located, none straddled
+    s = solve(Impact(law="hmd", angle_deg=5.0), 1e-12)
+    labels = [e for _, e in s.events]
+    assert labels[0] == "start in load" and labels[-1] == "end"
+    assert "unload" in labels and ("slide+" in labels or "slide-" in labels)
+
+
+# Measured with `minidem bench` (docs/benchmarks.md): the incremental Hertz-Mindlin laws
+# update Ft += kt(a_new) dd, which is first order in dt; at 2000 steps per contact HMD is
+# 2.5e-3 off in et at 1 deg and HM 3.8e-4 at 5 deg. They need a midpoint stiffness (engine).
+_FIRST_ORDER = {"hmd": "HMD at the default dt: et 2.5e-3 off at 1 deg, y1 3.0e-4 at 5 deg (first order in dt)",
+                "hm": "HM at the default dt: et 3.8e-4 off at 5 deg, y1 1.2e-4 (first order in dt)"}
+
+
+@pytest.mark.parametrize("law", [pytest.param(law, marks=pytest.mark.xfail(reason=_FIRST_ORDER[law], strict=True))
+                                 if law in _FIRST_ORDER else law for law in reference.LAWS])
+def test_engine_within_1e_4_of_reference_at_default_settings(law):
+    from minidem import bench
+
+    for angle in (1.0, 5.0, 20.0, 45.0):
+        summary, _ = bench.engine_case(law, angle)
+        errors = bench.errors(summary, bench.reference_solution(law, angle))
+        assert max(errors.values()) <= 1e-4, (law, angle, errors)
