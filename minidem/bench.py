@@ -36,7 +36,7 @@ from minidem import reference
 MEASURES = ("y1", "y2", "et")
 SCENARIO = Path(__file__).resolve().parent.parent / "scenarios" / "oblique.toml"
 DOCS = Path(__file__).resolve().parent.parent / "docs"
-DEFAULT_STEPS_PER_CONTACT = 2000  # scenario.py's run.steps_per_contact default
+DEFAULT_STEPS_PER_CONTACT = 4000  # scenario.py's run.steps_per_contact default
 TARGET_ERROR = 1e-4  # issue 5: every paper case within 1e-4 of the reference at the default
 REFERENCE_RTOL = (1e-10, 1e-12)
 WP_ANGLES = (1.0, 5.0, 10.0, 20.0, 30.0, 45.0)

@@ -58,7 +58,17 @@ def command_run(args) -> int:
         print(f"minidem: {scene.source}: law '{sim.law.name}' ({sim.entry.distribution} {sim.entry.version}), "
               f"{scene.n_particles} particle(s), {scene.wall_point.shape[0]} wall(s)")
         print(f"  time step {sim.dt:.4g} s ({sim.dt_reason})")
-    result = sim.run()
+    frames = None
+    if scene.vtk:
+        from minidem.output.vtk import SimulationFrames
+
+        frames = SimulationFrames(sim, scene.output_directory)
+    with _progress_bar(scene, args.quiet, sim.dt) as progress:
+        try:
+            result = sim.run(progress=progress, on_frame=frames)
+        finally:
+            if frames is not None:
+                frames.close()
     summary = analysis.summary(result)
     directory = scene.output_directory
     output.write_json(directory / "summary.json", summary)
@@ -70,8 +80,38 @@ def command_run(args) -> int:
         print_summary(summary)
         if not result.separated and scene.stop == "separation":
             print(f"  warning: the contact had not ended by t = {result.time:.4g} s (run.end_time)")
-        print(f"  wrote {directory / 'summary.json'}")
+        print(f"  wrote {directory / 'summary.json'}" + (f", {frames.pvd_path} ({frames.frames} frames)"
+                                                          if frames is not None else ""))
+        rate = result.steps / result.wall_time if result.wall_time > 0 else float("inf")
+        print(f"  {result.steps} steps in {result.wall_time:.3g} s: {rate:.4g} steps/s, "
+              f"{rate * scene.n_particles:.4g} particle-steps/s on {result.threads} thread(s)")
     return EXIT_OK
+
+
+class _progress_bar:
+    """A tqdm bar (steps, simulated time, particles, contacts, ETA) that appears only
+    once a run has taken more than two seconds; a no-op with --quiet."""
+
+    def __init__(self, scene, quiet, dt):
+        self.scene, self.quiet, self.dt, self.bar = scene, quiet, dt, None
+
+    def __enter__(self):
+        if self.quiet:
+            return None
+        return self
+
+    def __call__(self, steps, total, contacts):
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, unit="step", delay=2.0, dynamic_ncols=True, file=sys.stderr)
+        self.bar.update(steps - self.bar.n)
+        self.bar.set_postfix_str(f"t={steps * self.dt:.4g} s, {self.scene.n_particles} particles, "
+                                 f"{contacts} contacts", refresh=False)
+
+    def __exit__(self, *exc):
+        if self.bar is not None:
+            self.bar.close()
 
 
 def command_laws(args) -> int:

@@ -71,25 +71,39 @@ def rigid_body_et(angle_deg, mu, en=1.0):
 
 
 def plot_measure(sweep, rows, measure, path, mu):
-    fig, ax = plt.subplots(figsize=(6, 4.5))
+    """Left: the whole sweep; right: the small-angle range where the laws differ
+    (x <= 15 mu, or angle <= 45 deg for et)."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
     xmax = 0.0
     for i, (label, group) in enumerate(_series_of(sweep, rows)):
-        xs = np.array([r["x"] for r in group], dtype=float)
+        xs = np.array([r["angle_deg" if measure == "et" else "x"] for r in group], dtype=float)
         ys = np.array([r[measure] for r in group], dtype=float)
-        if measure == "et":
-            xs = np.array([r["angle_deg"] for r in group], dtype=float)
         order = np.argsort(xs)
-        ax.plot(xs[order], ys[order], marker=MARKERS[i % len(MARKERS)], ms=3, lw=1, label=label)
+        for ax in axes:
+            ax.plot(xs[order], ys[order], marker=MARKERS[i % len(MARKERS)], ms=3, lw=1, label=label)
         xmax = max(xmax, float(np.nanmax(xs)) if xs.size else 0.0)
+    zoom = 45.0 if measure == "et" else (15.0 * mu if math.isfinite(mu) and mu > 0 else xmax)
     if math.isfinite(mu) and xmax > 0:
-        grid = np.linspace(1e-3, xmax, 400)
+        grid = np.linspace(1e-3, xmax, 2000)
         line = {"y1": rigid_body_y1, "y2": rigid_body_y2, "et": rigid_body_et}[measure](grid, mu)
-        ax.plot(grid, line, "k--", lw=0.8, label="rigid body (eqs 6-8)")
+        for ax in axes:
+            ax.plot(grid, line, "k--", lw=0.8, label="rigid body (eqs 6-8)")
+    axes[1].set_xlim(0.0, min(zoom, xmax))
+    inside = [line.get_ydata()[line.get_xdata() <= zoom] for line in axes[1].get_lines()]
+    values = np.concatenate([v for v in inside if len(v)]) if inside else np.zeros(1)
+    if values.size and np.all(np.isfinite(values)):
+        pad = 0.05 * (values.max() - values.min() + 1e-12)
+        axes[1].set_ylim(values.min() - pad, values.max() + pad)
     if measure == "et":
-        ax.set_ylim(0.0, 1.05)
-        return _finish(fig, ax, sweep, path, "impact angle (deg)", "tangential restitution et")
-    labels = {"y1": "y1 = 2 vtr / ((1 + en) Vni)", "y2": "y2 = 2 R wr / ((1 + en) Vni)"}
-    return _finish(fig, ax, sweep, path, "x = 2 tan(theta) / (1 + en)", labels[measure])
+        axes[0].set_ylim(0.0, 1.05)
+        xlabel, ylabel = "impact angle (deg)", "tangential restitution et"
+    else:
+        xlabel = "x = 2 tan(theta) / (1 + en)"
+        ylabel = {"y1": "y1 = 2 vtr / ((1 + en) Vni)", "y2": "y2 = 2 R wr / ((1 + en) Vni)"}[measure]
+    axes[1].set_xlabel(xlabel)
+    axes[1].grid(alpha=0.3)
+    axes[1].set_title("small angles")
+    return _finish(fig, axes[0], sweep, path, xlabel, ylabel)
 
 
 def plot_force_displacement(sweep, rows, path):

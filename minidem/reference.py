@@ -19,8 +19,9 @@ integral ones; ``f1``, ``f2`` are HMD's load-reversal points Ft*, Ft**):
     hmd     Ft' = 8 G* a theta vs +/- mu Fn' (1 - theta)   (eq 21, theta from eq 22 with the
             increments -> 0; theta = 1 while Fn' > 0 and 8 G* a |vs| < mu Fn', eqs 19/24);
             f1' = mu Fn', f2' = -mu Fn' (eq 23)
-    lth     s' = vs, Ft = mu Fn [1 - (1 - |s|/s*)^1.5] sign(s), s* = mu delta / kappa; s held at
-            s* while it would pass it (eqs 30-35)
+    lth     s' = vs, Ft = mu Fn [1 - (1 - min(|s|/s*, 1))^1.5] sign(s), s* = mu delta / kappa,
+            on the total displacement (eq 35; no cut-back of s at s*, as the engine's law:
+            see docs/laws.md)
     hmdns_integral        s' = vs, Ft = 8 G* a s capped at mu Fn (eq 38)
     hmdns_integral_reset  as above, and s held at mu Fn / (8 G* a) while sliding (eq 40)
 
@@ -241,7 +242,7 @@ class _Law:
                 dq = sign * (self.shear_stiffness(y[DELTA]) * theta * sign * vs
                              + branch * self.mu * dfn * (1.0 - theta))
         elif name == "lth":
-            dq = sign * self.mu * y[U] / self.kappa if kind == "slide" else vs
+            dq = vs
         elif name == "hmdns_integral_reset" and kind == "slide":
             dq = sign * self.mu * self.e_star * y[U] / (6.0 * self.g_star)  # d/dt of mu Fn / (8 G* a)
         else:
@@ -266,7 +267,8 @@ class _Law:
                 else:  # divided by 2 E* a: kappa vs sign < mu u
                     out.append((self.kappa * sign * vs - self.mu * y[U], "stick"))
             elif name == "lth":
-                out.append((sign * vs - self.mu * y[U] / self.kappa, "stick"))
+                # back below the sliding displacement: |s| < s*
+                out.append((sign * y[Q] - self.mu * max(y[DELTA], 0.0) / self.kappa, "stick"))
             elif name == "hmdns_integral_reset":
                 out.append((sign * vs - self.mu * self.e_star * y[U] / (6.0 * self.g_star), "stick"))
             else:  # hmdns_integral capped: the secant force falls back under mu Fn
@@ -304,8 +306,8 @@ class _Law:
             if name == "hmdns_integral":
                 return ("capped", new_sign, 0), y
             if name == "lth":
-                y[Q] = new_sign * self.mu * max(y[DELTA], 0.0) / self.kappa
-            elif name == "hmdns_integral_reset":
+                return ("slide", new_sign, 0), y
+            if name == "hmdns_integral_reset":
                 y[Q] = new_sign * self.mu * self.e_star * max(y[DELTA], 0.0) / (6.0 * self.g_star)
             else:
                 y[Q] = new_sign * self.mu * fn

@@ -129,7 +129,7 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
     "run": ("table", (
         Key("dt", "float_or_auto", "auto", "s", "time step, or \"auto\": contact_time / steps_per_contact",
             low=0.0, low_open=True),
-        Key("steps_per_contact", "int", 2000, "-", "steps per normal-impact duration when dt = \"auto\"",
+        Key("steps_per_contact", "int", 4000, "-", "steps per normal-impact duration when dt = \"auto\"",
             low=20),
         Key("stop", "choice", "separation", "", "\"separation\": stop when the last contact ends; "
             "\"time\": run to end_time", choices=("separation", "time")),
@@ -734,7 +734,7 @@ def _check_geometry(scene: Scene, max_reported: int = 5) -> None:
 # ---------------------------------------------------------------------------------
 def reference_markdown() -> str:
     lines = ["# Scenario file reference", "",
-             "Generated from `minidem/scenario.py` (`minidem docs scenario`); every key, unit, default "
+             "Generated from `minidem/scenario.py` (`minidem docs --write docs/scenario-reference.md`); every key, unit, default "
              "and bound below is the one the validator applies. Units are SI throughout.", ""]
     for section, (shape, keys, description) in SCHEMA.items():
         header = {"tables": f"[{section}.NAME]", "array": f"[[{section}]]"}.get(shape, f"[{section}]")
@@ -743,7 +743,7 @@ def reference_markdown() -> str:
         for key in keys:
             default = "required" if key.default is REQUIRED else ("-" if key.default is None else f"`{key.default}`")
             kind = key.kind.replace("float_or_auto", 'float or "auto"').replace("vec3", "[x, y, z]")
-            lines.append(f"| `{key.name}` | {kind} | {key.unit or ''} | {default} | {key.bounds_text()} "
+            lines.append(f"| `{key.name}` | {kind} | {key.unit or ''} | {default} | {key.bounds_text().replace('|', 'or')} "
                          f"| {key.description} |")
         lines.append("")
     return "\n".join(lines)

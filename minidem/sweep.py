@@ -25,6 +25,7 @@ import math
 import multiprocessing
 import os
 import time as wallclock
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -102,13 +103,17 @@ def plan(data: dict, source: str) -> SweepPlan:
         errors.add("sweep.series_labels", f"expected {len(_series(sweep))} labels (one per combination of "
                    f"{', '.join(sweep.series_keys) or 'nothing'}), got {len(sweep.series_labels)}")
     # every case must be a valid scenario before anything runs: bad input is exit 2
-    for index in range(len(cases)):
-        try:
-            scenario.build_scene(scenario.apply_overrides(base, sweep.overrides(index)), source)
-        except ScenarioError as exc:
-            setting = ", ".join(f"{k} = {_toml_value(v)}" for k, v in zip(keys, cases[index]))
-            errors.add(f"sweep case {index} ({setting})", str(exc).replace(f"{source}: ", "", 1))
-            break
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for index in range(len(cases)):
+            try:
+                scenario.build_scene(scenario.apply_overrides(base, sweep.overrides(index)), source)
+            except ScenarioError as exc:
+                setting = ", ".join(f"{k} = {_toml_value(v)}" for k, v in zip(keys, cases[index]))
+                errors.add(f"sweep case {index} ({setting})", str(exc).replace(f"{source}: ", "", 1))
+                break
+    for message in dict.fromkeys(str(w.message) for w in caught):
+        warnings.warn(message, stacklevel=2)  # once each, not once per case
     errors.raise_if_any()
     return sweep
 
@@ -132,7 +137,9 @@ def _run_case(task) -> dict:
 
     row: dict[str, Any] = {"case": index, "error": ""}
     try:
-        scene = scenario.build_scene(scenario.apply_overrides(base, overrides), source)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # plan() has shown them once already
+            scene = scenario.build_scene(scenario.apply_overrides(base, overrides), source)
         if trace_path is not None:
             scene.trace = True
         result = simulation.Simulation(scene).run()

@@ -81,12 +81,7 @@ def test_hmd_switches_are_events():
 # Measured with `minidem bench` (docs/benchmarks.md): the incremental Hertz-Mindlin laws
 # update Ft += kt(a_new) dd, which is first order in dt; at 2000 steps per contact HMD is
 # 2.5e-3 off in et at 1 deg and HM 3.8e-4 at 5 deg. They need a midpoint stiffness (engine).
-_FIRST_ORDER = {"hmd": "HMD at the default dt: et 2.5e-3 off at 1 deg, y1 3.0e-4 at 5 deg (first order in dt)",
-                "hm": "HM at the default dt: et 3.8e-4 off at 5 deg, y1 1.2e-4 (first order in dt)"}
-
-
-@pytest.mark.parametrize("law", [pytest.param(law, marks=pytest.mark.xfail(reason=_FIRST_ORDER[law], strict=True))
-                                 if law in _FIRST_ORDER else law for law in reference.LAWS])
+@pytest.mark.parametrize("law", reference.LAWS)
 def test_engine_within_1e_4_of_reference_at_default_settings(law):
     from minidem import bench
 

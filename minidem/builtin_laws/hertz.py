@@ -77,6 +77,22 @@ FT, AXIS, FT_STAR, FT_2STAR, MODE, SLIDING = 0, 3, 6, 7, 8, 9
 VIRGIN, LOADING, UNLOADING, RELOADING = 0.0, 1.0, 2.0, 3.0
 
 
+@numba.njit(cache=True, inline="always")
+def _hmd_theta(mode, force_along, ft_star, ft_2star, fn, mu):
+    """theta of eqs 22a-c at one instant (the rate form: the discrete mu dFn terms of
+    the paper's incremental statement vanish with dt and are accounted for by taking
+    theta at the middle of the step)."""
+    if fn <= 0.0:
+        return 1.0 if force_along == 0.0 else 0.0
+    if mode == UNLOADING:
+        theta_cubed = 1.0 - (ft_star - force_along) / (2.0 * mu * fn)  # 22b
+    elif mode == RELOADING:
+        theta_cubed = 1.0 - (force_along - ft_2star) / (2.0 * mu * fn)  # 22c
+    else:
+        theta_cubed = 1.0 - force_along / (mu * fn)  # 22a
+    return min(max(theta_cubed, 0.0), 1.0) ** (1.0 / 3.0)
+
+
 @numba.njit(cache=True)
 def hmd_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
               normal_velocity, tangential_increment, tangential_velocity, history):
@@ -89,7 +105,10 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
     stiffness = constants[HERTZ_MODULUS] * math.sqrt(effective_radius)
     fn = stiffness * normal_overlap ** 1.5
     dfn = fn - stiffness * max(normal_overlap - normal_overlap_increment, 0.0) ** 1.5
-    stick_stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius * normal_overlap)  # 8 G* a
+    # 8 G* a at the middle of the step: with the end-of-step radius the update is only
+    # first order in dt (measured against minidem.reference); see also _hmd_theta
+    mid_overlap = max(normal_overlap - 0.5 * normal_overlap_increment, 0.0)
+    stick_stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius * mid_overlap)
     limit = mu * max(normal_force, 0.0)
 
     ddx, ddy, ddz = tangential_increment[0], tangential_increment[1], tangential_increment[2]
@@ -106,9 +125,9 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
     cross_x, cross_y, cross_z = ftx - force_along * ax, fty - force_along * ay, ftz - force_along * az
 
     mode = history[MODE]
-    # eq 23: the load-reversal points follow the normal force
-    ft_star = history[FT_STAR] + mu * dfn
-    ft_2star = history[FT_2STAR] - mu * dfn
+    # load-reversal points at the start of the step; eq 23 moves them by mu dFn over it
+    ft_star = history[FT_STAR]
+    ft_2star = history[FT_2STAR]
 
     stays_sliding = False
     if history[SLIDING] != 0.0 and constants[REVERSAL_CHECK] != 0.0:
@@ -134,17 +153,20 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
         force_along = limit
         cross_x, cross_y, cross_z = 0.0, 0.0, 0.0
     else:
+        branch_sign = -1.0 if mode == UNLOADING else 1.0
         if dfn > 0.0 and stick_stiffness * abs(along) < mu * dfn:
             theta = 1.0  # eqs 19 and 24: increments below mu dFn cause no slip
         else:
-            if mode == UNLOADING:
-                theta_cubed = 1.0 - (ft_star - force_along + 2.0 * mu * dfn) / (2.0 * mu * fn)  # 22b
-            elif mode == RELOADING:
-                theta_cubed = 1.0 - (force_along - ft_2star + 2.0 * mu * dfn) / (2.0 * mu * fn)  # 22c
-            else:
-                theta_cubed = 1.0 - (force_along + mu * dfn) / (mu * fn)  # 22a
-            theta = min(max(theta_cubed, 0.0), 1.0) ** (1.0 / 3.0)
-        branch_sign = -1.0 if mode == UNLOADING else 1.0
+            # eq 21 integrated by the midpoint rule: theta from a half-step predictor
+            # (eqs 22a-c evaluated at the middle of the step), so the law is second
+            # order in dt like the others instead of first
+            theta = _hmd_theta(mode, force_along, ft_star, ft_2star, fn - dfn, mu)
+            predicted = force_along + 0.5 * (stick_stiffness * theta * along
+                                             + branch_sign * mu * dfn * (1.0 - theta))
+            theta = _hmd_theta(mode, predicted, ft_star + 0.5 * mu * dfn, ft_2star - 0.5 * mu * dfn,
+                               fn - 0.5 * dfn, mu)
+        ft_star += mu * dfn  # eq 23
+        ft_2star -= mu * dfn
         # eq 21: dFt = 8 G* a theta dd (+/-) mu dFn (1 - theta)
         force_along += stick_stiffness * theta * along + branch_sign * mu * dfn * (1.0 - theta)
         tangent_stiffness = stick_stiffness * theta
@@ -191,7 +213,10 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
 def hm_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
              normal_velocity, tangential_increment, tangential_velocity, history):
     normal_force = hertz_normal_force(constants, effective_radius, effective_mass, normal_overlap, normal_velocity)
-    stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius * normal_overlap)
+    # eq 39 integrated with the stiffness at the middle of the step: the end-of-step
+    # contact radius makes the update first order in dt (measured against the reference)
+    mid_overlap = max(normal_overlap - 0.5 * normal_overlap_increment, 0.0)
+    stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius * mid_overlap)
     ftx, fty, ftz = incremental_spring(history, stiffness, tangential_increment,
                                        constants[MU] * max(normal_force, 0.0))
     return normal_force, ftx, fty, ftz
@@ -250,11 +275,11 @@ def lth_force(constants, effective_radius, effective_mass, normal_overlap, norma
     if sliding_displacement <= 0.0:
         return normal_force, 0.0, 0.0, 0.0
     ratio = min(displacement / sliding_displacement, 1.0)
-    magnitude = mu * max(normal_force, 0.0) * (1.0 - (1.0 - ratio) ** 1.5)  # eq 35
-    if displacement > sliding_displacement:
-        # Langston et al.: beyond d* the displacement is held at d* (section 3.4)
-        scale = sliding_displacement / displacement
-        history[0], history[1], history[2] = sx * scale, sy * scale, sz * scale
+    # eq 35. The min() is the whole of Langston et al.'s "if |s| > s* then |s| = s*": the
+    # stored total displacement is not cut back to s*, no elastic displacement is
+    # computed (the paper's appendix: that is what makes LTH slide throughout from
+    # about 20 deg and create energy, Figs 8-10)
+    magnitude = mu * max(normal_force, 0.0) * (1.0 - (1.0 - ratio) ** 1.5)
     return normal_force, magnitude * sx / displacement, magnitude * sy / displacement, magnitude * sz / displacement
 
 
