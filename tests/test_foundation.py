@@ -179,3 +179,33 @@ def test_second_run_reuses_the_compile_cache(tmp_path):
         index = list(Path(cache._cache_path).glob(f"{kernel.__name__}.{function.__name__}-*.nbi"))
         assert index, f"no numba cache index for {kernel.__name__}.{function.__name__} in {cache._cache_path}"
         assert list(index[0].parent.glob(index[0].name.replace(".nbi", ".*.nbc")))
+
+
+# --------------------------------------------------------------------------------------
+# the docs cannot drift from the code
+# --------------------------------------------------------------------------------------
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+
+
+def test_committed_scenario_reference_is_the_generated_one():
+    committed = (DOCS / "scenario-reference.md").read_text()
+    assert committed == scenario.reference_markdown(), (
+        "docs/scenario-reference.md is stale: run `minidem docs --write docs/scenario-reference.md`")
+
+
+def test_cli_doc_names_every_command_and_option():
+    import argparse
+
+    from minidem import cli
+
+    text = (DOCS / "cli.md").read_text()
+    parser = cli.build_parser()
+    missing = [o for a in parser._actions for o in a.option_strings if o.startswith("--") and o not in text]
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                if f"## `minidem {name}" not in text:
+                    missing.append(f"minidem {name}")
+                missing += [f"{name} {o}" for a in sub._actions for o in a.option_strings
+                            if o.startswith("--") and o != "--help" and f"`{o}" not in text]
+    assert not missing, f"docs/cli.md does not describe: {missing}"

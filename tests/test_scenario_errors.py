@@ -106,7 +106,7 @@ CASES = {
     "zero_wall_normal": (edit("normal = [0.0, 0.0, 1.0]", "normal = [0.0, 0.0, 0.0]"), [],
                          ["walls[0].normal", "must not be the zero vector"]),
     "empty_scene": (re.sub(r"\[impact\](.*\n){5}", "", BASE), [],
-                    ["the scene has no particles", "add an [impact] block or [[particles]]"]),
+                    ["the scene has no particles", "add an [impact] block"]),
     "particle_behind_wall": (SPHERES.format(z0=-0.01, z1=0.1), [],
                              ["particles[0]", "centre is on or behind wall 0", "flip the wall's normal"]),
     "particle_inside_wall": (SPHERES.format(z0=0.004, z1=0.1), [],
