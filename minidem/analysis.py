@@ -79,6 +79,12 @@ def summary(result: RunResult) -> dict:
         "wall_time_s": result.wall_time,
         "peak_normal_force_n": result.peak_normal_force,
         "peak_tangential_force_n": result.peak_tangential_force,
+        "particles": scene.n_particles,
+        "contacts_at_end": result.contacts,
+        "kinetic_energy_j": kinetic_energy(scene.mass, scene.inertia, result.velocity, result.angular_velocity),
+        "peak_kinetic_energy_j": float(result.energy[:, 1].max()) if result.energy is not None else None,
+        "neighbour_builds": result.neighbour_builds,
+        "threads": result.threads,
         "separated": result.separated,
         "dt_reason": result.dt_reason,
         "scenario": scene.source,
@@ -87,3 +93,22 @@ def summary(result: RunResult) -> dict:
                           for (a, b), c in result.constants.items()},
     })
     return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in out.items()}
+
+
+def pair_rebound(result: RunResult, i: int = 0, j: int = 1) -> dict:
+    """en and et of the collision of particles i and j, measured on their relative velocity
+    v_i - v_j against the initial line of centres n (from j to i) and the initial
+    tangential direction t of the relative velocity: the sphere-sphere counterparts of
+    the sphere-wall en, et (eq 2), equal to them through the reduced radius and mass."""
+    scene = result.scene
+    n = scene.position[i] - scene.position[j]
+    n = n / np.linalg.norm(n)
+    before = result.initial_velocity[i] - result.initial_velocity[j]
+    after = result.velocity[i] - result.velocity[j]
+    tangential = before - np.dot(before, n) * n
+    speed_t = float(np.linalg.norm(tangential))
+    out = {"en": float(np.dot(after, n)) / -float(np.dot(before, n)), "et": math.nan}
+    if speed_t > 0.0:
+        t = tangential / speed_t
+        out["et"] = float(np.dot(after, t)) / speed_t
+    return out

@@ -90,7 +90,9 @@ def fault(status, code, particle, partner, kind):
 def note_transitions(stats, time, dt, overlap, previous):
     """First-touch and separation times, interpolated within the step."""
     if overlap > 0.0 and previous <= 0.0 and stats[FIRST_CONTACT_TIME] < 0.0:
-        stats[FIRST_CONTACT_TIME] = time - dt * overlap / (overlap - previous)
+        # clamped to the step: rounding may otherwise give a time just below zero, which
+        # reads as 'no contact yet' and the run would never stop at separation
+        stats[FIRST_CONTACT_TIME] = max(time - dt * overlap / (overlap - previous), time - dt)
     elif overlap <= 0.0 and previous > 0.0:
         stats[LAST_SEPARATION_TIME] = time - dt * (-overlap) / (previous - overlap)
 
@@ -102,14 +104,17 @@ def note_peaks(stats, overlap, fn, ftx, fty, ftz):
     stats[PEAK_TANGENTIAL_FORCE] = max(stats[PEAK_TANGENTIAL_FORCE], math.sqrt(ftx * ftx + fty * fty + ftz * ftz))
 
 
+# The per-particle helpers take plain arrays, unpacked from the argument tuples once
+# per chunk of particles (force_range): unpacking tuples inside the particle loop costs
+# reference-count traffic that made the step ten times slower.
 @numba.njit(cache=True, inline="always")
-def wall_contact(i, particles, constants_row, overlap, previous, nx, ny, nz, history, dt):
+def wall_contact(i, velocity, angular_velocity, mass, radius, constants_row, overlap, previous, nx, ny, nz,
+                 history, dt):
     """The law's force on sphere i from a fixed wall whose normal at the contact is n.
 
     Lever arm R: the undeformed radius, as in the paper's rigid-body analysis (eqs
     3-8) and its measure y2 = 2 R w / ((1 + en) Vni).
     """
-    position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     normal_velocity, tangential_velocity = relative_contact_velocity(
         velocity[i, 0], velocity[i, 1], velocity[i, 2],
         angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2],
@@ -126,12 +131,10 @@ def finite(fn, ftx, fty, ftz):
 
 
 @numba.njit(cache=True, inline="always")
-def plane_forces(i, particles, law, planes, dt, time, tracking, acc):
+def plane_forces(i, position, velocity, angular_velocity, mass, radius, material, pair_row, constants,
+                 wall_point, wall_normal, wall_material, wall_history, wall_overlap,
+                 dt, time, probe_wall, probe, stats, status, acc):
     """Sphere-plane contacts of particle i, added to acc = (fx, fy, fz, tx, ty, tz, count)."""
-    position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
-    pair_row, constants, vector_offsets = law
-    wall_point, wall_normal, wall_material, wall_history, wall_overlap = planes
-    probe_wall, probe, stats, status = tracking
     fx, fy, fz, tx, ty, tz, count = acc
     px, py, pz = position[i, 0], position[i, 1], position[i, 2]
     for w in range(wall_point.shape[0]):
@@ -151,8 +154,8 @@ def plane_forces(i, particles, law, planes, dt, time, tracking, acc):
         nx, ny, nz = wall_normal[w, 0], wall_normal[w, 1], wall_normal[w, 2]
         # a plane's normal never turns, so its history needs no rotation
         fn, ftx, fty, ftz, increment = wall_contact(
-            i, particles, constants[pair_row[material[i], wall_material[w]]], overlap, previous,
-            nx, ny, nz, wall_history[i, w], dt)
+            i, velocity, angular_velocity, mass, radius, constants[pair_row[material[i], wall_material[w]]],
+            overlap, previous, nx, ny, nz, wall_history[i, w], dt)
         if not finite(fn, ftx, fty, ftz):
             fault(status, NON_FINITE_FORCE, i, w, PLANE)
             break
@@ -180,16 +183,15 @@ def plane_forces(i, particles, law, planes, dt, time, tracking, acc):
 
 
 @numba.njit(cache=True, inline="always")
-def curved_wall_contact(i, particles, law, constants_row, overlap, previous, nx, ny, nz, history, dt, acc):
+def curved_wall_contact(i, velocity, angular_velocity, mass, radius, vector_offsets, constants_row,
+                        overlap, previous, nx, ny, nz, history, dt, acc):
     """A contact with a wall whose normal turns as the sphere moves over it (cylinder,
     mesh): the history is first carried into the current tangent plane."""
-    position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
-    pair_row, constants, vector_offsets = law
     fx, fy, fz, tx, ty, tz, count = acc
     if SPIN:
         rotate_history_into_plane(history, vector_offsets, nx, ny, nz)
-    fn, ftx, fty, ftz, increment = wall_contact(i, particles, constants_row, overlap, previous,
-                                                nx, ny, nz, history, dt)
+    fn, ftx, fty, ftz, increment = wall_contact(i, velocity, angular_velocity, mass, radius, constants_row,
+                                                overlap, previous, nx, ny, nz, history, dt)
     fx += fn * nx - ftx
     fy += fn * ny - fty
     fz += fn * nz - ftz
@@ -202,11 +204,9 @@ def curved_wall_contact(i, particles, law, constants_row, overlap, previous, nx,
 
 
 @numba.njit(cache=True, inline="always")
-def cylinder_forces(i, particles, law, cylinders, dt, time, tracking, acc):
-    position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
-    pair_row, constants, vector_offsets = law
-    base, axis, cylinder_radius, length, cylinder_material, history, cylinder_overlap_prev = cylinders
-    probe_wall, probe, stats, status = tracking
+def cylinder_forces(i, position, velocity, angular_velocity, mass, radius, material, pair_row, constants,
+                    vector_offsets, base, axis, cylinder_radius, length, cylinder_material, history,
+                    cylinder_overlap_prev, dt, time, stats, status, acc):
     for c in range(base.shape[0]):
         overlap, nx, ny, nz = cylinder_overlap(position[i, 0], position[i, 1], position[i, 2], radius[i],
                                                base, axis, cylinder_radius, length, c)
@@ -222,8 +222,9 @@ def cylinder_forces(i, particles, law, cylinders, dt, time, tracking, acc):
             fault(status, TUNNELLED, i, c, CYLINDER)
             break
         acc, fn, ftx, fty, ftz = curved_wall_contact(
-            i, particles, law, constants[pair_row[material[i], cylinder_material[c]]], overlap, previous,
-            nx, ny, nz, history[i, c], dt, acc)
+            i, velocity, angular_velocity, mass, radius, vector_offsets,
+            constants[pair_row[material[i], cylinder_material[c]]], overlap, previous, nx, ny, nz,
+            history[i, c], dt, acc)
         if not finite(fn, ftx, fty, ftz):
             fault(status, NON_FINITE_FORCE, i, c, CYLINDER)
             break
@@ -245,7 +246,9 @@ def mesh_contact_geometry(i, position, radius, triangles, t):
 
 
 @numba.njit(cache=True, inline="always")
-def mesh_forces(i, particles, law, meshes, dt, time, tracking, acc):
+def mesh_forces(i, position, velocity, angular_velocity, mass, radius, material, pair_row, constants,
+                vector_offsets, triangles, triangle_material, offsets, candidates, history, mesh_overlap,
+                dt, time, stats, status, acc):
     """Sphere-triangle contacts of particle i with its candidate triangles.
 
     One contact per feature region: a face-interior contact always counts; an edge or
@@ -253,10 +256,6 @@ def mesh_forces(i, particles, law, meshes, dt, time, tracking, acc):
     carries it, e.g. on a flat mesh split into triangles) and only once however many
     triangles share that edge or vertex (same closest point).
     """
-    position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
-    pair_row, constants, vector_offsets = law
-    triangles, triangle_material, offsets, candidates, history, mesh_overlap = meshes
-    probe_wall, probe, stats, status = tracking
     start, stop = offsets[i], offsets[i + 1]
     touches_face = False
     for k in range(start, stop):
@@ -290,8 +289,9 @@ def mesh_forces(i, particles, law, meshes, dt, time, tracking, acc):
             fault(status, TUNNELLED, i, t, TRIANGLE)
             break
         acc, fn, ftx, fty, ftz = curved_wall_contact(
-            i, particles, law, constants[pair_row[material[i], triangle_material[t]]], overlap, previous,
-            nx, ny, nz, history[k], dt, acc)
+            i, velocity, angular_velocity, mass, radius, vector_offsets,
+            constants[pair_row[material[i], triangle_material[t]]], overlap, previous, nx, ny, nz,
+            history[k], dt, acc)
         if not finite(fn, ftx, fty, ftz):
             fault(status, NON_FINITE_FORCE, i, t, TRIANGLE)
             break
@@ -301,7 +301,9 @@ def mesh_forces(i, particles, law, meshes, dt, time, tracking, acc):
 
 
 @numba.njit(cache=True, inline="always")
-def pair_forces(i, particles, law, pairs, dt, time, tracking, acc):
+def pair_forces(i, position, velocity, angular_velocity, mass, radius, material, pair_row, constants,
+                vector_offsets, offsets, neighbours, history, pair_overlap, pair_force, pair_torque,
+                dt, time, stats, status, acc):
     """Contacts (i, j) of row i of the Verlet half list.
 
     Lever arms R_i - d/2 and R_j - d/2 sum to the centre distance, so the pair's
@@ -309,10 +311,6 @@ def pair_forces(i, particles, law, pairs, dt, time, tracking, acc):
     round-off. The force on j and the direction n x ft of the torques are stored per
     list entry for ``finish``; the torque on i is R_i' (n x ft), on j it is R_j' (n x ft).
     """
-    position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
-    pair_row, constants, vector_offsets = law
-    offsets, neighbours, history, pair_overlap, pair_force, pair_torque, reverse_offsets, reverse_entries = pairs
-    probe_wall, probe, stats, status = tracking
     fx, fy, fz, tx, ty, tz, count = acc
     px, py, pz, ri = position[i, 0], position[i, 1], position[i, 2], radius[i]
     for e in range(offsets[i], offsets[i + 1]):
@@ -380,25 +378,55 @@ def pair_forces(i, particles, law, pairs, dt, time, tracking, acc):
     return fx, fy, fz, tx, ty, tz, count
 
 
-@numba.njit(cache=True, parallel=PARALLEL)
-def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking):
-    """Gravity and every contact force on every particle, except the reactions of the
-    pairs (i < p, p), which ``finish`` adds. Returns the number of contacts."""
+@numba.njit(cache=True, error_model="numpy")
+def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking):
+    """Gravity and the contacts owned by particles first..last-1; returns their count."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
+    pair_row, constants, vector_offsets = law
+    wall_point, wall_normal, wall_material, wall_history, wall_overlap = planes
+    base, axis, cylinder_radius, length, cylinder_material, cylinder_history, cylinder_overlap_prev = cylinders
+    triangles, triangle_material, mesh_offsets, mesh_candidates, mesh_history, mesh_overlap = meshes
+    offsets, neighbours, pair_history, pair_overlap, pair_force, pair_torque, reverse_offsets, reverse_entries = pairs
+    probe_wall, probe, stats, status = tracking
     active = 0
-    for i in particle_range(position.shape[0]):
+    for i in range(first, last):
         acc = (mass[i] * gravity[0], mass[i] * gravity[1], mass[i] * gravity[2], 0.0, 0.0, 0.0, 0)
-        acc = plane_forces(i, particles, law, planes, dt, time, tracking, acc)
+        acc = plane_forces(i, position, velocity, angular_velocity, mass, radius, material, pair_row, constants,
+                           wall_point, wall_normal, wall_material, wall_history, wall_overlap,
+                           dt, time, probe_wall, probe, stats, status, acc)
         if CYLINDERS:
-            acc = cylinder_forces(i, particles, law, cylinders, dt, time, tracking, acc)
+            acc = cylinder_forces(i, position, velocity, angular_velocity, mass, radius, material, pair_row,
+                                  constants, vector_offsets, base, axis, cylinder_radius, length, cylinder_material,
+                                  cylinder_history, cylinder_overlap_prev, dt, time, stats, status, acc)
         if MESHES:
-            acc = mesh_forces(i, particles, law, meshes, dt, time, tracking, acc)
+            acc = mesh_forces(i, position, velocity, angular_velocity, mass, radius, material, pair_row, constants,
+                              vector_offsets, triangles, triangle_material, mesh_offsets, mesh_candidates,
+                              mesh_history, mesh_overlap, dt, time, stats, status, acc)
         if PAIRS:
-            acc = pair_forces(i, particles, law, pairs, dt, time, tracking, acc)
+            acc = pair_forces(i, position, velocity, angular_velocity, mass, radius, material, pair_row, constants,
+                              vector_offsets, offsets, neighbours, pair_history, pair_overlap, pair_force,
+                              pair_torque, dt, time, stats, status, acc)
         fx, fy, fz, tx, ty, tz, count = acc
         force[i, 0], force[i, 1], force[i, 2] = fx, fy, fz
         torque[i, 0], torque[i, 1], torque[i, 2] = tx, ty, tz
         active += count
+    return active
+
+
+# particles per parallel work item: large enough to amortise the call, small enough
+# for the threads to share the work evenly
+CHUNK = 256
+
+
+@numba.njit(cache=True, parallel=PARALLEL)
+def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking):
+    """Gravity and every contact force on every particle, except the reactions of the
+    pairs (i < p, p), which ``finish`` adds. Returns the number of contacts."""
+    n = particles[0].shape[0]
+    active = 0
+    for chunk in particle_range((n + CHUNK - 1) // CHUNK):
+        active += force_range(chunk * CHUNK, min(n, (chunk + 1) * CHUNK), particles, law, planes, cylinders,
+                              meshes, pairs, gravity, dt, time, tracking)
     return active
 
 

@@ -245,7 +245,9 @@ class Simulation:
         speeds = np.linalg.norm(scene.velocity, axis=1)
         extent = float(np.ptp(scene.position, axis=0).max() + 2 * scene.radius.max()) if scene.n_particles else 0.0
         fall = math.sqrt(2.0 * float(np.linalg.norm(scene.gravity)) * extent)
-        return max(float(speeds.max(initial=0.0)), fall, 1e-3)
+        # two particles may approach at twice the largest speed
+        fastest = float(speeds.max(initial=0.0)) * (2.0 if scene.n_particles > 1 else 1.0)
+        return max(fastest, fall, 1e-3)
 
     def contact_time(self) -> float:
         """Shortest normal-impact duration among the contact kinds the scene can have."""

@@ -788,3 +788,39 @@ def _benchmark(sizes=(20_000, 200_000), frames: int = 10,
 
 if __name__ == "__main__":  # pragma: no cover
     _benchmark()
+
+
+class SimulationFrames:
+    """The ``on_frame`` callback of :meth:`minidem.simulation.Simulation.run` that writes a
+    ParaView series: ``particles.pvd`` (+ ``particles_contacts.pvd`` when the scene asks
+    for the contact network) and ``walls.vtu``, all in ``directory``.
+
+    Frames are binary (raw appended); the disk sync runs on a helper thread, so the
+    simulation waits only for the bytes to reach the page cache.
+    """
+
+    def __init__(self, simulation, directory):
+        from minidem.walls import display_meshes
+
+        scene = simulation.scene
+        self.scene = scene
+        self.writer = VTKSeriesWriter(directory, "particles")
+        self.ids = np.arange(scene.n_particles, dtype=np.int64)
+        lower = (scene.position - scene.radius[:, None]).min(axis=0)
+        upper = (scene.position + scene.radius[:, None]).max(axis=0)
+        meshes = display_meshes(scene.walls, lower, upper)
+        self.walls_path = self.writer.write_walls(meshes) if meshes else None
+        self.frames = 0
+
+    def __call__(self, time_s, state) -> None:
+        pairs, normal_force = state.contact_pairs() if self.scene.vtk_contacts else (None, None)
+        self.writer.write_frame(time_s, state.position, self.scene.radius, state.velocity, state.angular_velocity,
+                                state.force, self.ids, self.scene.particle_material, pairs, normal_force)
+        self.frames += 1
+
+    def close(self) -> None:
+        self.writer.close()
+
+    @property
+    def pvd_path(self) -> str:
+        return self.writer.pvd_path
