@@ -3,7 +3,6 @@ packing in a box region, or a file (CSV or VTK)."""
 
 from __future__ import annotations
 
-import math
 import random
 from pathlib import Path
 
@@ -129,7 +128,3 @@ def read_particles(path: str | Path) -> dict[str, np.ndarray]:
     if not np.all(np.isfinite(out["position"])) or not np.all(out["radius"] > 0):
         raise ValueError(f"particle file '{path}': positions must be finite and radii > 0")
     return out
-
-
-def sphere_mass(radius, density) -> np.ndarray:
-    return 4.0 / 3.0 * math.pi * np.asarray(radius) ** 3 * density

@@ -171,15 +171,16 @@ def test_small_settle_comes_to_rest_inside_the_box(settled):
 
 
 def test_history_survives_neighbour_list_rebuilds_bit_for_bit():
-    # A skin of 1 um rebuilds the list almost every step while spheres are in sustained
+    # A skin of 10 um rebuilds the list every few steps while spheres are in sustained
     # frictional contact; with a 20 mm skin it is built once. Contacts, their order of
     # summation and their carried history are identical, so are the trajectories.
-    base = SMALL_SETTLE[1:4] + ["run.end_time=0.06", "output.vtk=false", "fill.0.count=100"]
+    # (One thread: a rebuild is a handful of short parallel regions, slow on a busy machine.)
+    base = SMALL_SETTLE[1:4] + ["run.end_time=0.06", "output.vtk=false", "fill.0.count=100", "run.threads=1"]
     results = {}
-    for skin in (1e-6, 2e-2):
+    for skin in (1e-5, 2e-2):
         scene = scenario.load_scene("scenarios/settle.toml", base + [f"run.skin={skin}"])
         results[skin] = simulation.Simulation(scene).run()
-    many, once = results[1e-6], results[2e-2]
+    many, once = results[1e-5], results[2e-2]
     assert many.neighbour_builds > 100 and once.neighbour_builds == 1
     assert many.contacts > 100  # sustained contacts, with tangential history
     assert np.array_equal(many.position, once.position)
@@ -205,7 +206,7 @@ def test_vtk_series_reads_back_with_meshio_and_vtk(tmp_path):
     from minidem.output.vtk import SimulationFrames
 
     scene = scenario.load_scene("scenarios/settle.toml", SMALL_SETTLE[1:4] + [
-        "fill.0.count=50", "run.end_time=0.01", "output.interval=0.002", "output.contacts=true"])
+        "fill.0.count=100", "run.end_time=0.03", "output.interval=0.006", "output.contacts=true"])
     sim = simulation.Simulation(scene)
     frames = SimulationFrames(sim, tmp_path)
     sim.run(on_frame=frames)
@@ -216,15 +217,15 @@ def test_vtk_series_reads_back_with_meshio_and_vtk(tmp_path):
     for entry in datasets:
         path = tmp_path / entry.get("file")
         mesh = meshio.read(path)
-        assert mesh.points.shape == (50, 3)
+        assert mesh.points.shape == (100, 3)
         for name, components in arrays.items():
             data = np.asarray(mesh.point_data[name])
-            assert data.shape[0] == 50 and (data.size // 50) == components
+            assert data.shape[0] == 100 and (data.size // 100) == components
         reader = vtk.vtkXMLUnstructuredGridReader()
         reader.SetFileName(str(path))
         reader.Update()
         grid = reader.GetOutput()
-        assert grid.GetNumberOfPoints() == 50
+        assert grid.GetNumberOfPoints() == 100
         for name in arrays:
             assert grid.GetPointData().GetArray(name) is not None
         assert np.allclose(vtk_to_numpy(grid.GetPointData().GetArray("radius")), scene.radius)
@@ -232,5 +233,8 @@ def test_vtk_series_reads_back_with_meshio_and_vtk(tmp_path):
     assert sum(len(block.data) for block in walls.cells) == 5  # the open box: 5 quads
     contacts = sorted(tmp_path.glob("particles_contacts_*.vtu"))
     assert len(contacts) == 6
+    # (meshio cannot read a grid with zero cells, such as the t = 0 network: last frame)
     last = meshio.read(contacts[-1])
-    assert "normal_force" in last.cell_data and np.all(np.concatenate(last.cell_data["normal_force"]) > 0)
+    normal_force = np.concatenate(last.cell_data["normal_force"])
+    # compressive on the whole (the damped Hertz force may pull slightly at unloading)
+    assert len(normal_force) > 0 and np.all(np.isfinite(normal_force)) and normal_force.sum() > 0
