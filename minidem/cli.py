@@ -52,6 +52,9 @@ def command_run(args) -> int:
     data = scenario.read_toml(args.file)
     if sweep.has_sweep(data):
         return sweep.command(args, data)
+    for option, given in (("--scheduler", args.scheduler), ("--restart", args.restart), ("--workers", args.workers)):
+        if given is not None and given is not False:
+            warnings.warn(f"{option} ignored: {args.file} has no [sweep] table (a single run)")
     scene = scenario.load_scene(args.file, args.set, args.out)
     sim = simulation.Simulation(scene)
     if not args.quiet:

@@ -73,6 +73,19 @@ def _call_batch(function, batch):
     return [function(task) for task in batch]
 
 
+# Tasks travel in batches: a case of the paper's impact takes a few milliseconds, about
+# the cost of one round trip to a worker (more on a loaded machine), so one case per
+# message would spend as long on messages as on work. At least 8 batches per worker
+# keep the load balanced, at most 16 tasks per batch keep the loss small when a worker
+# dies (its batch is rerun) and let workers that join later find work.
+MAX_BATCH = 16
+
+
+def batches(positions: Sequence[int], workers: int) -> list[list[int]]:
+    size = max(1, min(MAX_BATCH, len(positions) // (max(1, workers) * 8)))
+    return [list(positions[i:i + size]) for i in range(0, len(positions), size)]
+
+
 class LocalProcesses:
     """Worker processes on this machine (forked where the platform allows it)."""
 
@@ -94,10 +107,8 @@ class LocalProcesses:
         context = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else None)
         pool = concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context)
         try:
-            # a few tasks per submission keeps the inter-process traffic below the run time
-            chunk = max(1, len(rest) // (workers * 8))
-            batches = [rest[i:i + chunk] for i in range(0, len(rest), chunk)]
-            futures = {pool.submit(_call_batch, function, [tasks[p] for p in batch]): batch for batch in batches}
+            futures = {pool.submit(_call_batch, function, [tasks[p] for p in batch]): batch
+                       for batch in batches(rest, workers)}
             for future in concurrent.futures.as_completed(futures):
                 batch = futures.pop(future)
                 try:
@@ -125,9 +136,9 @@ def dask_available() -> bool:
 
 
 class DaskCluster:
-    """The workers of a running Dask scheduler. Tasks go one case each
-    (``Client.submit``), come back through ``as_completed``; a worker that dies mid-task
-    has its tasks rerun elsewhere by the scheduler."""
+    """The workers of a running Dask scheduler. Tasks go in small batches
+    (``Client.submit``) and come back through ``as_completed``; a worker that dies
+    mid-batch has that batch rerun elsewhere by the scheduler."""
 
     def __init__(self, address: str, connect_timeout_s: float = 20.0, source: str = "--scheduler"):
         try:
@@ -149,18 +160,18 @@ class DaskCluster:
     def run(self, function, tasks, warm=()):
         from distributed import as_completed
 
-        # one Dask task per case: a lost worker costs the scheduler one case to rerun, and
-        # the journal gets every case as soon as it is done
-        submitted = self.client.map(function, list(tasks), pure=False)
-        futures = dict(zip(submitted, range(len(submitted))))
+        workers = len(self.client.scheduler_info().get("workers", {}))
+        groups = batches(range(len(tasks)), workers)
+        futures = {self.client.submit(_call_batch, function, [tasks[p] for p in group], pure=False): group
+                   for group in groups}
         try:
-            for future in as_completed(submitted, loop=self.client.loop):
-                position = futures.pop(future)
+            for future in as_completed(list(futures), loop=self.client.loop):
+                group = futures.pop(future)
                 if future.status == "finished":
-                    yield position, future.result()
+                    yield from zip(group, future.result())
                 else:
                     exc = future.exception()
-                    yield position, Lost(f"{type(exc).__name__}: {exc}")
+                    yield from ((p, Lost(f"{type(exc).__name__}: {exc}")) for p in group)
                 future.release()
         finally:
             if futures:  # interrupted: cancel what nobody will wait for
