@@ -86,6 +86,19 @@ def batches(positions: Sequence[int], workers: int) -> list[list[int]]:
     return [list(positions[i:i + size]) for i in range(0, len(positions), size)]
 
 
+def _exit_with_parent(parent: int) -> None:
+    """Pool initializer: a worker whose parent was killed (kill -9) would wait for work
+    forever (its siblings hold the queue open); this ends it within a second."""
+    import threading
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="minidem-parent-watch").start()
+
+
 class LocalProcesses:
     """Worker processes on this machine (forked where the platform allows it)."""
 
@@ -105,7 +118,8 @@ class LocalProcesses:
         for position in warm:
             yield position, function(tasks[position])
         context = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else None)
-        pool = concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context)
+        pool = concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context,
+                                                      initializer=_exit_with_parent, initargs=(os.getpid(),))
         try:
             futures = {pool.submit(_call_batch, function, [tasks[p] for p in batch]): batch
                        for batch in batches(rest, workers)}
@@ -160,6 +174,8 @@ class DaskCluster:
     def run(self, function, tasks, warm=()):
         from distributed import as_completed
 
+        if not tasks:
+            return
         workers = len(self.client.scheduler_info().get("workers", {}))
         groups = batches(range(len(tasks)), workers)
         futures = {self.client.submit(_call_batch, function, [tasks[p] for p in group], pure=False): group

@@ -266,7 +266,8 @@ class Journal:
             header = json.loads(lines[0])
         except ValueError:
             return None, {}
-        if not isinstance(header, dict) or header.get("minidem_sweep_journal") != JOURNAL_FORMAT:
+        if (not isinstance(header, dict) or header.get("minidem_sweep_journal") != JOURNAL_FORMAT
+                or not isinstance(header.get("cases"), int)):
             return None, {}
         rows: dict[int, dict] = {}
         for line in lines[1:]:
@@ -324,10 +325,51 @@ def run(sweep: SweepPlan, directory: Path, progress: bool = True, workers: int |
     (unless ``restart``), BackendFailure if cases were lost by the back end (the
     finished ones stay in the journal: running again runs the rest).
     """
-    from minidem import output
-
     echo = echo or (lambda text: None)
     directory = Path(directory)
+    with _directory_lock(directory):
+        return _run_locked(sweep, directory, progress, workers, executor, restart, echo)
+
+
+class _directory_lock:
+    """One sweep per output directory at a time: a second `minidem run` on the same
+    directory would run the same cases again and interleave its rows with the first's.
+    A POSIX record lock: the system releases it when its process dies, however it dies,
+    and forked worker processes do not inherit it."""
+
+    def __init__(self, directory: Path):
+        self.path = directory / ".sweep.lock"
+        self.handle = None
+
+    def __enter__(self):
+        try:
+            import fcntl
+        except ImportError:  # not a POSIX system: no lock
+            return self
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.handle = open(self.path, "a+")
+        try:
+            fcntl.lockf(self.handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            self.handle.seek(0)
+            holder = self.handle.read().strip() or "another process"
+            self.handle.close()
+            raise ScenarioError(f"{self.path.parent}: another minidem sweep ({holder}) is running in this output "
+                                "directory; wait for it to end, or choose another --out") from None
+        self.handle.seek(0)
+        self.handle.truncate()
+        self.handle.write(f"pid {os.getpid()}\n")
+        self.handle.flush()
+        return self
+
+    def __exit__(self, *exc):
+        if self.handle is not None:
+            self.handle.close()
+
+
+def _run_locked(sweep, directory, progress, workers, executor, restart, echo) -> list[dict]:
+    from minidem import output
+
     n = len(sweep.cases)
     digest = plan_hash(sweep)
     journal = Journal(directory / JOURNAL)

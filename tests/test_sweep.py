@@ -124,6 +124,26 @@ def test_changed_plan_is_refused_until_restart(tmp_path):
     assert [row["angle_deg"] for row in sweep.load_rows(tmp_path / "sweep.csv")] == [case[0] for case in changed.cases]
 
 
+def test_a_second_sweep_in_the_same_directory_is_refused(tmp_path):
+    """Two runs appending to one journal would run cases twice and interleave rows."""
+    import sys
+
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from minidem import sweep; "
+                               f"lock = sweep._directory_lock(__import__('pathlib').Path({str(tmp_path)!r})); "
+                               "lock.__enter__(); print('locked', flush=True); time.sleep(60)"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        with pytest.raises(scenario.ScenarioError, match=f"another minidem sweep \\(pid {holder.pid}\\)"):
+            sweep.run(_plan([5.0], keep_traces=False), tmp_path, progress=False,
+                      executor=executors.LocalProcesses(1))
+    finally:
+        holder.kill()
+        holder.wait()
+    # the lock dies with its process
+    sweep.run(_plan([5.0], keep_traces=False), tmp_path, progress=False, executor=executors.LocalProcesses(1))
+
+
 def test_failed_case_is_reported_in_its_row_and_the_sweep_goes_on(tmp_path):
     """dt = 1 us is fine at 5 m/s (the contact lasts ~0.13 ms) but at 1e5 m/s the sphere
     moves 0.1 m, four radii, in one step: the engine reports it passed through the wall."""
