@@ -52,6 +52,9 @@ def command_run(args) -> int:
     data = scenario.read_toml(args.file)
     if sweep.has_sweep(data):
         return sweep.command(args, data)
+    for option, given in (("--scheduler", args.scheduler), ("--restart", args.restart), ("--workers", args.workers)):
+        if given is not None and given is not False:
+            warnings.warn(f"{option} ignored: {args.file} has no [sweep] table (a single run)")
     scene = scenario.load_scene(args.file, args.set, args.out)
     sim = simulation.Simulation(scene)
     if not args.quiet:
@@ -189,7 +192,13 @@ def build_parser() -> argparse.ArgumentParser:
                      help="override a scenario value, dotted keys (repeatable): --set impact.angle_deg=30")
     run.add_argument("--quiet", action="store_true", help="print nothing but errors")
     run.add_argument("--workers", type=int, default=None, metavar="N",
-                     help="worker processes for a [sweep] scenario (default: sweep.workers; 0: one per CPU)")
+                     help="local worker processes for a [sweep] scenario (default: sweep.workers; 0: one per CPU)")
+    run.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                     help="run a [sweep] scenario's cases on the workers of this Dask scheduler (tcp://HOST:PORT; "
+                     "default: $DASK_SCHEDULER_ADDRESS if set; 'local': local processes); needs minidem[dask]")
+    run.add_argument("--restart", action="store_true",
+                     help="discard the journal of an earlier sweep in the output directory and run every case "
+                     "(default: resume it, running only the missing cases)")
     run.set_defaults(handler=command_run)
 
     show = sub.add_parser("laws", help="list installed contact laws and broken plugins")

@@ -107,12 +107,13 @@ def plot_measure(sweep, rows, measure, path, mu):
 
 
 def plot_force_displacement(sweep, rows, path):
+    directory = Path(path).parent  # trace_file is relative to the sweep directory
     fig, ax = plt.subplots(figsize=(6, 4.5))
     for i, (label, group) in enumerate(_series_of(sweep, rows)):
         for row in group:
             if not row.get("trace_file"):
                 continue
-            trace = np.genfromtxt(row["trace_file"], delimiter=",", names=True)
+            trace = np.genfromtxt(directory / row["trace_file"], delimiter=",", names=True)
             tangent = _tangent_of(sweep)
             force = sum(trace[f"tangential_force_{a}_n"] * tangent[j] for j, a in enumerate("xyz"))
             shift = sum(trace[f"tangential_displacement_{a}_m"] * tangent[j] for j, a in enumerate("xyz"))

@@ -157,8 +157,8 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
         Key("cases", "table", REQUIRED, "", 'dotted scenario key -> list of values, e.g. {"contact.law" = '
             '["hmd", "ls"], "impact.angle_deg" = [1.0, 5.0]}; the cases are the cartesian product (first '
             "key slowest), each the base scenario with those values set (as `--set` would)"),
-        Key("workers", "int", 0, "-", "worker processes (0: one per CPU; `minidem run --workers` overrides)",
-            low=0),
+        Key("workers", "int", 0, "-", "local worker processes (0: one per CPU; `minidem run --workers` "
+            "overrides; with `--scheduler` the cluster's workers run the cases)", low=0),
         Key("keep_traces", "bool", False, "", "write each case's per-step contact trace to "
             "OUT/traces/case_NNN.csv (as output.trace does for a single run)"),
         Key("figures", "list", ["y1", "y2", "et"], "", 'PNG figures to draw: "y1", "y2" (against x, with '
@@ -167,9 +167,12 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
         Key("series_labels", "list", None, "", "legend labels, one per combination of the swept keys other "
             "than impact.angle_deg (default: the values)"),
         Key("title", "str", None, "", "figure title"),
-    ), "A parameter sweep: `minidem run` runs every case (in parallel) and writes OUT/sweep.csv "
-       "(law, angle_deg, x, y1, y2, et, en, contact_duration_s, energy_ratio, the swept keys, error) and "
-       "the figures. See docs/paper-reproduction.md."),
+    ), "A parameter sweep: `minidem run` runs every case (in parallel: local processes, or a Dask "
+       "cluster with `--scheduler`) and writes OUT/sweep.csv (case, law, angle_deg, x, y1, y2, et, en, "
+       "contact_duration_s, energy_ratio, max_overlap_m, steps, dt_s, the swept keys, status, error; the "
+       "same file for any back end and worker count) and the figures. Finished cases are journalled in "
+       "OUT/sweep.journal: running the same command again resumes an interrupted sweep. See "
+       "docs/paper-reproduction.md and docs/sweeps-on-a-cluster.md."),
 }
 
 

@@ -8,32 +8,46 @@ A scenario with a ``[sweep]`` section is run once per case by ``minidem run``::
 
 ``cases`` maps dotted scenario keys (the ones ``--set`` takes) to lists of values; the
 cases are their cartesian product, the first key varying slowest, and every case is the
-base scenario with those values set. Cases run in worker processes; each worker reuses
-the compiled kernel of a law across its cases (one ``Simulation`` per case, no
-recompilation). Rows come back in case order whatever the completion order, so
-``sweep.csv`` does not depend on the worker count. A case that fails is a row with its
-``error`` column filled in; the other cases still run.
+base scenario with those values set.
+
+Cases run through an executor (``minidem.executors``): local processes by default, or
+the workers of a Dask scheduler (``--scheduler``). The worker function
+:func:`run_case` is pure and deterministic: it compiles or loads the law's kernel from
+the worker's own cache, runs one case and returns its row (and trace); only this process
+writes files. Rows go to ``sweep.csv`` in case order whatever the completion order, with
+floats written so that they read back to the same bits, so ``sweep.csv`` is the same file
+for any back end and worker count.
+
+Every finished case is appended at once to ``OUT/sweep.journal`` (JSON lines after a
+header holding the hash of the plan), so an interrupted sweep (Ctrl-C, kill, a lost
+cluster) resumes: ``minidem run`` on the same output directory runs only the cases the
+journal lacks. A case that fails is a row with ``status = failed`` and the reason in
+``error``; the other cases still run.
 """
 
 from __future__ import annotations
 
-import concurrent.futures
 import dataclasses
+import functools
+import hashlib
 import itertools
 import json
 import math
-import multiprocessing
 import os
 import time as wallclock
 import warnings
 from pathlib import Path
 from typing import Any
 
-from minidem import scenario
+from minidem import executors, scenario
 from minidem.scenario import ScenarioError
 
+# Every column is a function of the case alone (no wall time: that goes to the journal
+# and sweep.json), so that sweep.csv is the same file wherever the cases ran.
 ROW_COLUMNS = ("case", "law", "angle_deg", "x", "y1", "y2", "et", "en", "contact_duration_s", "energy_ratio",
-               "max_overlap_m", "steps", "dt_s", "wall_time_s")
+               "max_overlap_m", "steps", "dt_s")
+JOURNAL = "sweep.journal"
+JOURNAL_FORMAT = 1
 FIGURES = ("y1", "y2", "et", "force_displacement")
 ANGLE_KEY = "impact.angle_deg"
 
@@ -128,99 +142,325 @@ def _series(sweep: SweepPlan) -> list[tuple]:
 
 
 # ---------------------------------------------------------------------------------
-# running one case (in a worker process)
+# what a plan computes: its hash decides whether a journal can be resumed
 # ---------------------------------------------------------------------------------
-def _run_case(task) -> dict:
-    index, base, overrides, source, trace_path = task
-    from minidem import analysis, output, simulation
-    from minidem.kernel import TRACE_COLUMNS
+@functools.lru_cache(maxsize=None)
+def code_fingerprint(law_names: tuple[str, ...]) -> str:
+    """Hash of what decides a case's numbers besides its scenario: minidem's own sources,
+    the sources, package and version of the laws used, numba and numpy. Computed once per
+    process; a worker whose fingerprint differs from the client's refuses to run cases."""
+    import numba
+    import numpy
 
-    row: dict[str, Any] = {"case": index, "error": ""}
+    import minidem
+    from minidem import laws, simulation
+
+    digest = hashlib.sha256()
+    package = Path(minidem.__file__).parent
+    for path in sorted(package.rglob("*.py")):
+        digest.update(path.relative_to(package).as_posix().encode() + b"\0" + path.read_bytes())
+    registry = laws.registry()
+    for name in law_names:
+        entry = registry.entry(name)
+        digest.update(f"|{entry.law.name}|{entry.distribution}|{entry.version}|"
+                      f"{simulation._law_source_hash(entry.law)}".encode())
+    digest.update(f"|numba {numba.__version__}|numpy {numpy.__version__}|minidem {minidem.__version__}".encode())
+    return digest.hexdigest()
+
+
+def _laws_of(sweep: SweepPlan) -> tuple[str, ...]:
+    if "contact.law" in sweep.keys:
+        position = sweep.keys.index("contact.law")
+        return tuple(dict.fromkeys(str(case[position]) for case in sweep.cases))
+    return (str(sweep.base.get("contact", {}).get("law")),)
+
+
+def plan_hash(sweep: SweepPlan) -> str:
+    """Hash of everything that decides the rows: the base scenario, the swept keys and
+    values, keep_traces and the code fingerprint (not figures, titles or workers)."""
+    payload = {"format": JOURNAL_FORMAT, "base": sweep.base, "keys": sweep.keys, "cases": sweep.cases,
+               "keep_traces": sweep.keep_traces, "code": code_fingerprint(_laws_of(sweep))}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()
+
+
+# ---------------------------------------------------------------------------------
+# one case: the worker function (pure, deterministic, importable as minidem.sweep.run_case)
+# ---------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Case:
+    """Everything a worker needs to run one case; small, picklable, no file paths."""
+
+    index: int
+    base: dict
+    overrides: tuple[str, ...]
+    source: str
+    trace: bool
+    laws: tuple[str, ...]
+    fingerprint: str
+
+
+class CodeMismatch(RuntimeError):
+    """The worker's minidem, laws, numba or numpy differ from the client's."""
+
+
+def run_case(case: Case) -> dict:
+    """Run one case; return its row (plain Python values) and, when asked, its trace
+    (``row["trace"]``, an array the caller writes). A failure of the case itself is
+    reported in the row (``status``, ``error``), never raised."""
+    if code_fingerprint(case.laws) != case.fingerprint:
+        # an infrastructure fault, not a result: raised, so the case is not journalled
+        raise CodeMismatch(f"worker pid {os.getpid()} runs other minidem/law/numba/numpy code than the client "
+                           "(install the same versions on every worker)")
+    from minidem import analysis, simulation
+
+    row: dict[str, Any] = {"case": case.index, "status": "ok", "error": ""}
+    started = wallclock.perf_counter()
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # plan() has shown them once already
-            scene = scenario.build_scene(scenario.apply_overrides(base, overrides), source)
-        if trace_path is not None:
-            scene.trace = True
+            scene = scenario.build_scene(scenario.apply_overrides(case.base, list(case.overrides)), case.source)
+        scene.trace = case.trace
         result = simulation.Simulation(scene).run()
         summary = analysis.summary(result)
-        row.update({k: summary.get(k) for k in ROW_COLUMNS if k != "case"})
+        row.update({k: _plain(summary.get(k)) for k in ROW_COLUMNS if k != "case"})
         if not result.separated and scene.stop == "separation":
-            row["error"] = f"contact had not ended by t = {result.time:.4g} s"
-        if trace_path is not None and result.trace is not None:
-            output.write_csv(trace_path, TRACE_COLUMNS, result.trace.tolist())
-            row["trace_file"] = str(trace_path)
+            row["status"], row["error"] = "failed", f"contact had not ended by t = {result.time:.4g} s"
+        if case.trace and result.trace is not None:
+            row["trace"] = result.trace
     except Exception as exc:  # noqa: BLE001 - a failed case is reported in its row
-        row["error"] = f"{type(exc).__name__}: {exc}".replace("\n", " ")
+        row["status"], row["error"] = "failed", f"{type(exc).__name__}: {exc}".replace("\n", " ")
+    row["wall_time_s"] = wallclock.perf_counter() - started
     return row
 
 
-def run(sweep: SweepPlan, directory: Path, progress: bool = True, workers: int | None = None) -> list[dict]:
-    """Run every case; write ``sweep.csv`` (and traces) under ``directory``; return the rows."""
+def _plain(value):
+    """numpy scalars as Python ones: the same row whether it crossed a pipe or the journal."""
+    import numpy as np
+
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+# ---------------------------------------------------------------------------------
+# the journal: one JSON line per finished case, after a header with the plan's hash
+# ---------------------------------------------------------------------------------
+class Journal:
+    """Append-only record of finished cases. Each row is one ``write`` of one line,
+    flushed at once (a killed process loses nothing it has written) and synced to disk at
+    least once a second; a torn last line (power loss) is dropped on reading, so that
+    case runs again."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.handle = None
+        self.synced = 0.0
+
+    def read(self) -> tuple[dict | None, dict[int, dict]]:
+        """(header, {case: row}); (None, {}) when there is no readable journal."""
+        try:
+            lines = self.path.read_bytes().split(b"\n")
+        except FileNotFoundError:
+            return None, {}
+        try:
+            header = json.loads(lines[0])
+        except ValueError:
+            return None, {}
+        if (not isinstance(header, dict) or header.get("minidem_sweep_journal") != JOURNAL_FORMAT
+                or not isinstance(header.get("cases"), int)):
+            return None, {}
+        rows: dict[int, dict] = {}
+        for line in lines[1:]:
+            try:
+                row = json.loads(line)
+            except ValueError:
+                continue  # empty, or torn by a crash: that case is simply not done
+            if isinstance(row, dict) and isinstance(row.get("case"), int) and 0 <= row["case"] < header["cases"]:
+                rows[row["case"]] = row
+        return header, rows
+
+    def start(self, header: dict) -> None:
+        from minidem.output import atomic_write
+
+        atomic_write(self.path, json.dumps(header) + "\n")
+        self._open()
+
+    def resume(self) -> None:
+        # cut a torn last line so the next row starts on a line of its own
+        data = self.path.read_bytes()
+        if not data.endswith(b"\n"):
+            with open(self.path, "r+b") as handle:
+                handle.truncate(data.rfind(b"\n") + 1)
+        self._open()
+
+    def _open(self) -> None:
+        self.handle = open(self.path, "ab", buffering=0)
+        self.synced = wallclock.monotonic()
+
+    def append(self, row: dict) -> None:
+        self.handle.write((json.dumps(row, default=_plain) + "\n").encode())
+        if wallclock.monotonic() - self.synced > 1.0:
+            os.fsync(self.handle.fileno())
+            self.synced = wallclock.monotonic()
+
+    def close(self) -> None:
+        if self.handle is not None:
+            os.fsync(self.handle.fileno())
+            self.handle.close()
+            self.handle = None
+
+
+# ---------------------------------------------------------------------------------
+# running a sweep
+# ---------------------------------------------------------------------------------
+def run(sweep: SweepPlan, directory: Path, progress: bool = True, workers: int | None = None,
+        executor: executors.Executor | None = None, restart: bool = False, echo=None) -> list[dict]:
+    """Run the cases the journal in ``directory`` lacks (all of them for a new sweep or
+    with ``restart``); write ``sweep.csv``, ``sweep.json`` (and traces) under
+    ``directory``; return the rows in case order.
+
+    ``executor``: where the cases run (default: local processes, ``workers`` of them,
+    else ``sweep.workers``; 0 is one per CPU). ``echo(text)``: where notes go.
+    Raises ScenarioError if the directory holds an unfinished sweep of another plan
+    (unless ``restart``), BackendFailure if cases were lost by the back end (the
+    finished ones stay in the journal: running again runs the rest).
+    """
+    echo = echo or (lambda text: None)
+    directory = Path(directory)
+    with _directory_lock(directory):
+        return _run_locked(sweep, directory, progress, workers, executor, restart, echo)
+
+
+class _directory_lock:
+    """One sweep per output directory at a time: a second `minidem run` on the same
+    directory would run the same cases again and interleave its rows with the first's.
+    A POSIX record lock: the system releases it when its process dies, however it dies,
+    and forked worker processes do not inherit it."""
+
+    def __init__(self, directory: Path):
+        self.path = directory / ".sweep.lock"
+        self.handle = None
+
+    def __enter__(self):
+        try:
+            import fcntl
+        except ImportError:  # not a POSIX system: no lock
+            return self
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.handle = open(self.path, "a+")
+        try:
+            fcntl.lockf(self.handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            self.handle.seek(0)
+            holder = self.handle.read().strip() or "another process"
+            self.handle.close()
+            raise ScenarioError(f"{self.path.parent}: another minidem sweep ({holder}) is running in this output "
+                                "directory; wait for it to end, or choose another --out") from None
+        self.handle.seek(0)
+        self.handle.truncate()
+        self.handle.write(f"pid {os.getpid()}\n")
+        self.handle.flush()
+        return self
+
+    def __exit__(self, *exc):
+        if self.handle is not None:
+            self.handle.close()
+
+
+def _run_locked(sweep, directory, progress, workers, executor, restart, echo) -> list[dict]:
     from minidem import output
 
-    directory = Path(directory)
     n = len(sweep.cases)
-    workers = workers if workers is not None else sweep.workers
-    workers = min(workers or os.cpu_count() or 1, n)
-    tasks = []
-    for index in range(n):
-        trace_path = directory / "traces" / f"case_{index:03d}.csv" if sweep.keep_traces else None
-        tasks.append((index, sweep.base, sweep.overrides(index), sweep.source, trace_path))
-
-    rows: list[dict | None] = [None] * n
-    bar = _progress_bar(n, progress)
-    started = wallclock.perf_counter()
-    # The first case of each law runs here first: its kernel is compiled (or loaded from
-    # numba's cache) once, and forked workers inherit it instead of compiling it again.
-    first_of_law: dict[Any, int] = {}
-    for index in range(n):
-        first_of_law.setdefault(_law_of(sweep, index), index)
-    for index in first_of_law.values():
-        rows[index] = _run_case(tasks[index])
-        bar.update(1)
-    rest = [t for t in tasks if rows[t[0]] is None]
-    if workers <= 1 or len(rest) <= 1:
-        for task in rest:
-            rows[task[0]] = _run_case(task)
-            bar.update(1)
+    digest = plan_hash(sweep)
+    journal = Journal(directory / JOURNAL)
+    header, done = journal.read()
+    if header is not None and header.get("plan") == digest and not restart:
+        if done:
+            echo(f"resuming: {len(done)} of {n} case(s) already done in {journal.path}")
+        journal.resume()
     else:
-        context = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else None)
-        with concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
-            # a few cases per task keeps the inter-process traffic below the run time
-            chunk = max(1, len(rest) // (workers * 8))
-            batches = [rest[i:i + chunk] for i in range(0, len(rest), chunk)]
-            futures = {pool.submit(_run_batch, batch): batch for batch in batches}
-            for future in concurrent.futures.as_completed(futures):
-                for row in future.result():
-                    rows[row["case"]] = row
-                bar.update(len(futures[future]))
-    bar.close()
-    elapsed = wallclock.perf_counter() - started
+        if header is not None and not restart:
+            previous_done = len(done)
+            if 0 < previous_done < header.get("cases", 0):  # work would be lost: the user decides
+                raise ScenarioError(
+                    f"{directory}: holds an unfinished sweep of a different plan ({previous_done} of "
+                    f"{header.get('cases')} case(s) done, from {header.get('source')}): the scenario, its [sweep] "
+                    "cases, a --set value or minidem's code changed since. Run with --restart to discard it and "
+                    "start over, or choose another --out")
+            echo(f"starting over: {directory} held a sweep of a different plan ({previous_done} of "
+                 f"{header.get('cases')} case(s) done)")
+        done = {}
+        for stale in [directory / "sweep.csv", directory / "sweep.json", *directory.glob("traces/case_*.csv")]:
+            stale.unlink(missing_ok=True)
+        journal.start({"minidem_sweep_journal": JOURNAL_FORMAT, "plan": digest, "cases": n,
+                       "source": sweep.source, "keys": sweep.keys})
 
+    laws = _laws_of(sweep)
+    fingerprint = code_fingerprint(laws)
+    pending = [i for i in range(n) if i not in done]
+    tasks = [Case(i, sweep.base, tuple(sweep.overrides(i)), sweep.source, sweep.keep_traces, laws, fingerprint)
+             for i in pending]
+    # the first case of each law first: a forking back end hands its kernel to every worker
+    first_of_law: dict[Any, int] = {}
+    for position, index in enumerate(pending):
+        first_of_law.setdefault(_law_of(sweep, index), position)
+    owned = executor is None
+    if executor is None:
+        executor = executors.LocalProcesses(workers if workers is not None else sweep.workers)
+    lost: dict[int, str] = {}
+    bar = _progress_bar(n, len(done), progress)
+    started = wallclock.perf_counter()
+    try:
+        for position, row in executor.run(run_case, tasks, warm=list(first_of_law.values())):
+            index = pending[position]
+            if isinstance(row, executors.Lost):
+                lost[index] = row.reason
+                continue
+            trace = row.pop("trace", None)
+            if trace is not None:
+                relative = f"traces/case_{index:03d}.csv"
+                from minidem.kernel import TRACE_COLUMNS
+
+                output.write_csv(directory / relative, TRACE_COLUMNS, trace.tolist())
+                row["trace_file"] = relative  # relative to the sweep directory: the same file anywhere
+            journal.append(row)  # after its trace: a journalled case is complete on disk
+            done[index] = row
+            bar.update(1)
+    finally:
+        bar.close()
+        journal.close()
+        if owned:
+            executor.close()
+    elapsed = wallclock.perf_counter() - started
+    if lost:
+        reasons = sorted(set(lost.values()))
+        raise executors.BackendFailure(
+            f"{len(lost)} of {n} case(s) were not run by {executor.description}: {'; '.join(reasons)[:500]}. "
+            f"The {len(done)} finished case(s) are in {journal.path}: run the same command again to run the rest")
+
+    rows = [dict(done[i]) for i in range(n)]
     swept = [k for k in sweep.keys if k not in ("contact.law", ANGLE_KEY)]
-    columns = list(ROW_COLUMNS) + swept + (["trace_file"] if sweep.keep_traces else []) + ["error"]
+    columns = list(ROW_COLUMNS) + swept + (["trace_file"] if sweep.keep_traces else []) + ["status", "error"]
     table = []
     for row, case in zip(rows, sweep.cases):
         for key, value in zip(sweep.keys, case):
             if key not in ("contact.law", ANGLE_KEY):
                 row[key] = value
-        if row.get("law") is None and "contact.law" in sweep.keys:
-            row["law"] = case[sweep.keys.index("contact.law")]
-        if row.get("angle_deg") is None and ANGLE_KEY in sweep.keys:
-            row["angle_deg"] = case[sweep.keys.index(ANGLE_KEY)]
+        # a failed case has no summary: its law and angle come from the plan
+        if row.get("law") is None:
+            row["law"] = _law_of(sweep, row["case"])
+        if row.get("angle_deg") is None:
+            row["angle_deg"] = (case[sweep.keys.index(ANGLE_KEY)] if ANGLE_KEY in sweep.keys
+                                else sweep.base.get("impact", {}).get("angle_deg"))
         table.append(["" if row.get(c) is None else row.get(c) for c in columns])
     output.write_csv(directory / "sweep.csv", columns, table)
-    failed = sum(1 for r in rows if r["error"])
     output.write_json(directory / "sweep.json", {
-        "scenario": sweep.source, "cases": n, "failed": failed, "workers": workers,
-        "wall_time_s": elapsed, "swept_keys": sweep.keys,
+        "scenario": sweep.source, "cases": n, "failed": sum(1 for r in rows if r["status"] != "ok"),
+        "ran_now": len(pending), "resumed_from": n - len(pending), "backend": executor.description,
+        "wall_time_s": elapsed, "cases_wall_time_s": sum(r.get("wall_time_s") or 0.0 for r in rows),
+        "swept_keys": sweep.keys, "plan": digest,
     })
     return rows
-
-
-def _run_batch(batch) -> list[dict]:
-    return [_run_case(task) for task in batch]
 
 
 def _law_of(sweep: SweepPlan, index: int):
@@ -237,13 +477,12 @@ class _NoBar:
         pass
 
 
-def _progress_bar(total: int, enabled: bool):
+def _progress_bar(total: int, initial: int, enabled: bool):
     if not enabled:
         return _NoBar()
     from tqdm import tqdm
 
-    return tqdm(total=total, unit="case", desc="sweep", leave=True)
-
+    return tqdm(total=total, initial=initial, unit="case", desc="sweep", leave=True)
 
 def load_rows(path: str | Path) -> list[dict]:
     """Read a sweep.csv back, numbers as floats (empty cells as None)."""
@@ -273,19 +512,42 @@ def friction_of(sweep: SweepPlan) -> float:
 
 def command(args, data: dict) -> int:
     """``minidem run`` of a scenario with a [sweep] section."""
+    import sys
+
     from minidem import figures
 
     data = scenario.apply_overrides(data, args.set)
     sweep = plan(data, str(args.file))
     directory = Path(args.out) if args.out else Path(
         sweep.base.get("output", {}).get("directory") or Path("out") / Path(args.file).stem)
-    if not args.quiet:
-        print(f"minidem: {sweep.source}: sweep of {len(sweep.cases)} case(s) over {', '.join(sweep.keys)}")
-    rows = run(sweep, directory, progress=not args.quiet, workers=getattr(args, "workers", None))
+    workers = getattr(args, "workers", None)
+    if workers is not None and workers < 0:
+        raise ScenarioError(f"--workers {workers}: must be >= 0 (0: one per CPU)")
+    executor = executors.from_options(getattr(args, "scheduler", None), workers if workers is not None
+                                      else sweep.workers)
+    echo = (lambda text: None) if args.quiet else (lambda text: print(f"  {text}"))
+    try:
+        if workers is not None and not isinstance(executor, executors.LocalProcesses):
+            warnings.warn(f"--workers {workers} ignored: the cases run on the workers of {executor.description}")
+        if not args.quiet:
+            print(f"minidem: {sweep.source}: sweep of {len(sweep.cases)} case(s) over {', '.join(sweep.keys)} "
+                  f"on {executor.description}")
+        rows = run(sweep, directory, progress=not args.quiet, executor=executor,
+                   restart=getattr(args, "restart", False), echo=echo)
+    except KeyboardInterrupt:
+        print(f"minidem: sweep interrupted; finished cases are in {directory / JOURNAL}: run the same command "
+              "again to run only the rest", file=sys.stderr)
+        raise
+    finally:
+        executor.close()
     written = figures.draw(sweep, rows, directory)
-    failed = [r for r in rows if r["error"]]
+    failed = [r for r in rows if r["status"] != "ok"]
     if not args.quiet:
         print(f"  wrote {directory / 'sweep.csv'}" + "".join(f"\n  wrote {p}" for p in written))
         for r in failed:
             print(f"  case {r['case']} failed: {r['error']}")
-    return 1 if failed and len(failed) == len(rows) else 0
+    if failed:
+        print(f"minidem: {len(failed)} of {len(rows)} sweep case(s) failed (status and error columns of "
+              f"{directory / 'sweep.csv'}); the other cases ran", file=sys.stderr)
+        return 1
+    return 0

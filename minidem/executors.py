@@ -1,0 +1,309 @@
+"""Where the cases of a sweep run: one interface, two back ends.
+
+An executor takes a function and a list of tasks and yields ``(position, result)`` pairs
+as the tasks finish, in any order; the caller puts them back in order. The function must
+be importable by module path (Dask and the process pool send it by name, never its
+code), pure and deterministic, so the results cannot depend on where or in which order
+they ran.
+
+* :class:`LocalProcesses`: processes on this machine (the default, no set-up).
+* :class:`DaskCluster`: the workers of a running Dask distributed scheduler
+  (``pip install 'minidem[dask]'``; ``minidem run FILE --scheduler tcp://HOST:PORT``).
+
+A task that never came back because the infrastructure failed (a worker process died
+too often, the process pool broke) is yielded as :class:`Lost`: it is not a result, and
+the sweep reports it as not run, so that running the sweep again runs it.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import multiprocessing
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any, Protocol
+
+from minidem.scenario import ScenarioError
+from minidem.simulation import RunFailure
+
+DASK_ADDRESS_VARIABLE = "DASK_SCHEDULER_ADDRESS"  # Dask's own convention (dask.config "scheduler-address")
+DASK_MISSING = "the Dask back end needs the dask extra: pip install 'minidem[dask]'"
+
+
+@dataclasses.dataclass(frozen=True)
+class Lost:
+    """A task that did not come back (infrastructure failure, not a failed case)."""
+
+    reason: str
+
+
+class Executor(Protocol):
+    description: str  # for messages and sweep.json, e.g. "local processes (2)"
+
+    def run(self, function: Callable[[Any], Any], tasks: Sequence[Any],
+            warm: Sequence[int] = ()) -> Iterator[tuple[int, Any]]:
+        """Run ``function(task)`` for every task; yield ``(position in tasks, result or
+        Lost)`` as each finishes, in any order. ``warm``: positions worth running first in
+        this process (a back end that forks its workers then hands them what those runs
+        loaded, e.g. compiled kernels); a back end may ignore it."""
+
+    def close(self) -> None:
+        ...
+
+
+class BackendUnavailable(ScenarioError):
+    """A back end that cannot be used as asked (exit 2: bad option or missing extra)."""
+
+
+class BackendFailure(RunFailure):
+    """A back end that failed while in use (exit 1)."""
+
+
+# ---------------------------------------------------------------------------------
+# local processes
+# ---------------------------------------------------------------------------------
+def _call_batch(function, batch):
+    return [function(task) for task in batch]
+
+
+# Tasks travel in batches: a case of the paper's impact takes a few milliseconds, about
+# the cost of one round trip to a worker (more on a loaded machine), so one case per
+# message would spend as long on messages as on work. At least 8 batches per worker
+# keep the load balanced, at most 16 tasks per batch keep the loss small when a worker
+# dies (its batch is rerun) and let workers that join later find work.
+MAX_BATCH = 16
+
+
+def batches(positions: Sequence[int], workers: int) -> list[list[int]]:
+    size = max(1, min(MAX_BATCH, len(positions) // (max(1, workers) * 8)))
+    return [list(positions[i:i + size]) for i in range(0, len(positions), size)]
+
+
+def _exit_with_parent(parent: int) -> None:
+    """Pool initializer: a worker whose parent was killed (kill -9) would wait for work
+    forever (its siblings hold the queue open); this ends it within a second."""
+    import threading
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="minidem-parent-watch").start()
+
+
+class LocalProcesses:
+    """Worker processes on this machine (forked where the platform allows it)."""
+
+    def __init__(self, workers: int = 0):
+        self.workers = workers or os.cpu_count() or 1
+        self.description = f"local processes ({self.workers})"
+
+    def run(self, function, tasks, warm=()):
+        warm = [p for p in dict.fromkeys(warm) if 0 <= p < len(tasks)]
+        rest = [p for p in range(len(tasks)) if p not in set(warm)]
+        workers = min(self.workers, len(rest))
+        if workers <= 1:
+            for position in warm + rest:
+                yield position, function(tasks[position])
+            return
+        # Runs here before the fork: every worker inherits what they compiled or loaded.
+        for position in warm:
+            yield position, function(tasks[position])
+        context = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else None)
+        pool = concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context,
+                                                      initializer=_exit_with_parent, initargs=(os.getpid(),))
+        try:
+            futures = {pool.submit(_call_batch, function, [tasks[p] for p in batch]): batch
+                       for batch in batches(rest, workers)}
+            for future in concurrent.futures.as_completed(futures):
+                batch = futures.pop(future)
+                try:
+                    results = future.result()
+                except Exception as exc:  # noqa: BLE001 - a broken pool loses its tasks, not the sweep
+                    results = [Lost(f"{type(exc).__name__}: {exc}")] * len(batch)
+                yield from zip(batch, results)
+        finally:
+            # on Ctrl-C or an abandoned generator: no new batches, do not wait for them
+            pool.shutdown(wait=False, cancel_futures=True)
+
+    def close(self):
+        pass
+
+
+# ---------------------------------------------------------------------------------
+# Dask distributed
+# ---------------------------------------------------------------------------------
+def dask_available() -> bool:
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+class DaskCluster:
+    """The workers of a running Dask scheduler. Tasks go in small batches
+    (``Client.submit``) and come back through ``as_completed``; a worker that dies
+    mid-batch has that batch rerun elsewhere by the scheduler."""
+
+    def __init__(self, address: str, connect_timeout_s: float = 20.0, source: str = "--scheduler"):
+        try:
+            from distributed import Client
+        except ImportError:
+            raise BackendUnavailable(f"{source} {address}: {DASK_MISSING}") from None
+        if "://" not in address and ":" not in address:
+            raise BackendUnavailable(f"{source} {address!r}: not a scheduler address; expected tcp://HOST:PORT "
+                                     "(or 'local' for local processes)")
+        self.address = address
+        try:
+            self.client = Client(address, timeout=connect_timeout_s, set_as_default=False)
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise BackendFailure(f"cannot reach the Dask scheduler at {address} ({source}): "
+                                 f"{type(exc).__name__}: {exc}") from None
+        workers = len(self.client.scheduler_info().get("workers", {}))
+        self.description = f"Dask scheduler {address} ({workers} worker(s) at start)"
+
+    def run(self, function, tasks, warm=()):
+        from distributed import as_completed
+
+        if not tasks:
+            return
+        workers = len(self.client.scheduler_info().get("workers", {}))
+        groups = batches(range(len(tasks)), workers)
+        futures = {self.client.submit(_call_batch, function, [tasks[p] for p in group], pure=False): group
+                   for group in groups}
+        try:
+            for future in as_completed(list(futures), loop=self.client.loop):
+                group = futures.pop(future)
+                if future.status == "finished":
+                    yield from zip(group, future.result())
+                else:
+                    exc = future.exception()
+                    yield from ((p, Lost(f"{type(exc).__name__}: {exc}")) for p in group)
+                future.release()
+        finally:
+            if futures:  # interrupted: cancel what nobody will wait for
+                self.client.cancel(list(futures))
+
+    def close(self):
+        self.client.close()
+
+
+def from_options(scheduler: str | None, workers: int) -> Executor:
+    """The back end the user asked for: ``--scheduler ADDRESS``, else the
+    DASK_SCHEDULER_ADDRESS environment variable, else local processes
+    (``--scheduler local`` forces them)."""
+    source = "--scheduler"
+    if scheduler is None and os.environ.get(DASK_ADDRESS_VARIABLE):
+        scheduler, source = os.environ[DASK_ADDRESS_VARIABLE], DASK_ADDRESS_VARIABLE
+    if scheduler is None or scheduler == "local":
+        return LocalProcesses(workers)
+    return DaskCluster(scheduler, source=source)
+
+
+# ---------------------------------------------------------------------------------
+# a scheduler and workers as separate processes on this machine (tests, benchmark)
+# ---------------------------------------------------------------------------------
+class LocalDaskProcesses:
+    """``dask scheduler`` and N ``dask worker`` processes on 127.0.0.1 (random free
+    ports, one thread each), each in its own process group so that it can be killed
+    whole, and every one torn down on exit, also after an error. On a real cluster the
+    user starts these (docs/sweeps-on-a-cluster.md)."""
+
+    def __init__(self, n_workers: int, env: dict | None = None, start_timeout_s: float = 60.0):
+        self.n_workers, self.start_timeout_s = n_workers, start_timeout_s
+        self.env = dict(os.environ if env is None else env)
+        self.env.pop(DASK_ADDRESS_VARIABLE, None)
+        self.processes: list[subprocess.Popen] = []
+        self.workers: list[subprocess.Popen] = []
+        self.address: str | None = None
+        self._tmp = None
+
+    def _start(self, *args) -> subprocess.Popen:
+        log = open(Path(self._tmp.name) / f"process{len(self.processes)}.log", "wb")
+        process = subprocess.Popen([sys.executable, "-m", "dask", *args], env=self.env, stdout=log,
+                                   stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+        log.close()
+        self.processes.append(process)
+        return process
+
+    def __enter__(self) -> "LocalDaskProcesses":
+        self._tmp = tempfile.TemporaryDirectory(prefix="minidem-dask-")
+        try:
+            scheduler_file = Path(self._tmp.name) / "scheduler.json"
+            self._start("scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                        "--scheduler-file", str(scheduler_file))
+            self.address = self._wait_for_scheduler(scheduler_file)
+            for _ in range(self.n_workers):
+                self.workers.append(self._start("worker", self.address, "--host", "127.0.0.1", "--nthreads", "1",
+                                                "--nworkers", "1", "--no-dashboard"))
+            self._wait_for_workers()
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    def _wait_for_scheduler(self, scheduler_file: Path) -> str:
+        import json
+
+        deadline = time.monotonic() + self.start_timeout_s
+        while time.monotonic() < deadline:
+            if self.processes[0].poll() is not None:
+                raise RuntimeError(f"dask scheduler exited with {self.processes[0].returncode}:\n{self.logs()}")
+            try:
+                return json.loads(scheduler_file.read_text())["address"]
+            except (OSError, ValueError, KeyError):
+                time.sleep(0.1)
+        raise RuntimeError(f"dask scheduler did not start in {self.start_timeout_s} s:\n{self.logs()}")
+
+    def _wait_for_workers(self) -> None:
+        from distributed import Client
+
+        with Client(self.address, timeout=self.start_timeout_s, set_as_default=False) as client:
+            client.wait_for_workers(self.n_workers, timeout=self.start_timeout_s)
+
+    def kill_worker(self, index: int) -> int:
+        """SIGKILL one worker's whole process group (as a machine that dies)."""
+        process = self.workers[index]
+        os.killpg(process.pid, signal.SIGKILL)
+        return process.wait(timeout=30)
+
+    def logs(self) -> str:
+        if self._tmp is None:
+            return ""
+        return "\n".join(f"--- {p.name}\n{p.read_text(errors='replace')[-3000:]}"
+                         for p in sorted(Path(self._tmp.name).glob("*.log")))
+
+    def __exit__(self, *exc) -> None:
+        for process in reversed(self.processes):  # workers first, then the scheduler
+            if process.poll() is None:
+                try:
+                    os.killpg(process.pid, signal.SIGTERM)
+                except ProcessLookupError:
+                    pass
+        for process in self.processes:
+            try:
+                process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                try:
+                    os.killpg(process.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                process.wait(timeout=10)
+        # a worker's nanny-spawned process shares its group: make sure none is left
+        for process in self.processes:
+            try:
+                os.killpg(process.pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
