@@ -508,17 +508,33 @@ class Simulation:
             return checkpoint.write(Path(policy.directory) / name, arrays, meta)
 
         good, spare = snapshot(), None
+        # the run loop, and the energy samples and trace chunks kept, at the end of the last
+        # chunk that passed the checks
+        checked, checked_counts = dict(loop), (len(energy), len(trace_chunks))
 
         def fail(message, suggestion=None):
-            """Stop: restore the last good state, write it, raise RunFailure."""
+            """Stop: go back to the last state that passed the checks, write it, raise RunFailure.
+
+            That state is rebuilt from the last copy (``good``) by replaying the steps
+            in between: runs are deterministic, so the replay gives it bit for bit."""
             state.restore(good["arrays"])
             for live, saved in zip((probe, stats, status), good["tracking"]):
                 live[:] = saved
-            good_step = good["loop"]["steps"]
+            step, completing = good["loop"]["steps"], False
+            while step < checked["steps"] and status[0] == kernel.OK:
+                taken, needs_rebuild = call(step, checked["steps"] - step, completing, no_trace)
+                step, completing = step + taken, False
+                if needs_rebuild:
+                    self.rebuild(state)
+                    completing = True
+            last_good = snapshot()
+            last_good["loop"] = dict(checked)
+            last_good["energy"], last_good["trace"] = checked_counts
+            good_step = checked["steps"]
             written = []
             if policy is not None:
-                written.append(str(write_state(checkpoint.LAST_GOOD, good, "last good")))
-            if frames_on and good["loop"]["last_frame_step"] != good_step:
+                written.append(str(write_state(checkpoint.LAST_GOOD, last_good, "last good")))
+            if frames_on and checked["last_frame_step"] != good_step:
                 on_frame(good_step * self.dt, state)
                 written.append("the last VTK frame")
             where = f", written to {' and '.join(written)}" if written else ""
@@ -577,6 +593,7 @@ class Simulation:
                     on_frame(now, state)
                     loop["frames"] += 1
                     loop["last_frame_step"] = steps
+                checked, checked_counts = dict(loop), (len(energy), len(trace_chunks))
                 if progress is not None:
                     progress(steps, total_steps, state.count_contacts())
                 checkpoint_due = policy is not None and not separating and steps < total_steps and (

@@ -121,6 +121,39 @@ def test_killed_run_resumes_bit_for_bit(tmp_path):
     assert [name for name in vtk_files if (out / name).read_bytes() != (reference / name).read_bytes()] == []
 
 
+def test_sigterm_writes_a_checkpoint_that_resumes_bit_for_bit(tmp_path):
+    # SIGTERM (a job scheduler's stop) between chunks: exit code 130, a checkpoint of the
+    # last copied state (not one written on schedule: no checkpoint interval is set), and
+    # a message saying how to continue; the resumed run ends as an uninterrupted one.
+    overrides = SMALL_SETTLE + ["run.end_time=0.2", "output.interval=0.02"]
+    out = tmp_path / "out"
+    command = ["run", SETTLE, "--out", out, "--quiet", *as_options(overrides)]
+    process = subprocess.Popen(minidem_command() + [str(a) for a in command], cwd=REPO, text=True,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    # the third frame is written at step 2,000, past the first copy of the state (every
+    # 666 steps of 300 particles)
+    try:
+        while not (out / "particles_000002.vtu").exists():
+            assert process.poll() is None, f"the run ended before it was stopped: {process.stderr.read()}"
+            time.sleep(0.01)
+    finally:
+        process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=300)
+    assert process.returncode == 130, stderr
+    assert "--resume" in stderr and "Traceback" not in stderr
+    arrays, meta = checkpoint.read(out / checkpoint.CHECKPOINT)
+    assert 0 < meta["step"] < meta["total_steps"]
+    done = run_cli(*command, "--resume")
+    assert done.returncode == 0, done.stderr
+
+    reference = tmp_path / "reference"
+    simulation.Simulation(scenario.load_scene(SETTLE, overrides, reference)).run(
+        checkpoints=checkpoint.Policy(reference))
+    got, _ = checkpoint.read(out / checkpoint.FINAL_STATE)
+    want, _ = checkpoint.read(reference / checkpoint.FINAL_STATE)
+    assert_same_state(got, want)
+
+
 def test_interrupted_impact_resumes_bit_for_bit_and_refuses_another_scenario(tmp_path, capsys):
     # Ctrl-C (a KeyboardInterrupt between chunks) writes a checkpoint; --resume refuses
     # it for a changed scenario or another engine build, and otherwise completes the run
