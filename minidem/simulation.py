@@ -542,11 +542,12 @@ class Simulation:
             raise RunFailure(f"{message}. {advice[0].upper()}{advice[1:]}. Last good state: step {good_step} "
                              f"(t = {good_step * self.dt:.6g} s){where}")
 
-        def check(at_time):
+        def check(step):
+            at_time = step * self.dt
             fault, loop["gravity_work_max"] = guard.check(state, at_time, loop["gravity_work_max"])
             if fault is not None:
                 touching = blowup.contacts_of(state, fault.particle)
-                fail(f"blow-up ({fault.what}) at step {loop['steps']} (t = {at_time:.6g} s): {fault.detail}; "
+                fail(f"blow-up ({fault.what}) at step {step} (t = {at_time:.6g} s): {fault.detail}; "
                      f"particle {fault.particle} touches " + (", ".join(touching) if touching else "nothing"))
 
         started = wallclock.perf_counter()
@@ -577,14 +578,14 @@ class Simulation:
                 if needs_rebuild:
                     # mid-step (drifted, forces pending): a runaway particle must not
                     # reach the neighbour grid
-                    check((steps + 1) * self.dt)
+                    check(steps + 1)
                     self.rebuild(state)
                     completing = True  # the next call completes the step from its forces
                     continue
                 if taken == chunk and wallclock.perf_counter() - chunk_started < 0.1:
                     chunk_goal = min(chunk_steps, chunk_goal * 2)
                 now = steps * self.dt
-                check(now)
+                check(steps)
                 separating = taken < chunk  # stop_at_separation: the last contact ended
                 at_frame = frames_on and steps >= frame_step(loop["frames"])
                 if steps % sample_steps == 0 or steps == total_steps or at_frame or separating:

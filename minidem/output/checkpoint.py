@@ -29,6 +29,7 @@ import hashlib
 import io
 import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -138,6 +139,10 @@ def load_for_resume(sim, directory: str | Path) -> tuple[dict, dict]:
     return arrays, meta
 
 
+# the temporary names of minidem.output.atomic_write and of the VTK writer's _PendingFile
+_TEMPORARY = re.compile(r"^\..+\.(tmp\d+|\d+\.\d+\.tmp)$")
+
+
 def remove_stale_temporaries(directory: str | Path) -> list[Path]:
     """Delete the hidden temporary files (``.NAME.tmp*``, ``.NAME.PID.K.tmp``) that an
     atomic write leaves when the process is killed between writing and renaming."""
@@ -146,7 +151,7 @@ def remove_stale_temporaries(directory: str | Path) -> list[Path]:
     if not directory.is_dir():
         return removed
     for path in directory.glob(".*"):
-        if path.is_file() and ".tmp" in path.name:
+        if path.is_file() and _TEMPORARY.match(path.name):
             try:
                 os.remove(path)
                 removed.append(path)
