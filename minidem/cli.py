@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 import warnings
 from pathlib import Path
@@ -49,31 +50,52 @@ def print_summary(summary: dict, out=sys.stdout) -> None:
 def command_run(args) -> int:
     from minidem import analysis, output, scenario, simulation, sweep
 
+    from minidem.output import checkpoint
+
     data = scenario.read_toml(args.file)
     if sweep.has_sweep(data):
+        if args.resume and args.restart:
+            raise scenario.ScenarioError(f"{args.file}: --resume and --restart contradict each other: a sweep "
+                                         "resumes by default; --restart runs every case again")
         return sweep.command(args, data)
     for option, given in (("--scheduler", args.scheduler), ("--restart", args.restart), ("--workers", args.workers)):
         if given is not None and given is not False:
             warnings.warn(f"{option} ignored: {args.file} has no [sweep] table (a single run)")
     scene = scenario.load_scene(args.file, args.set, args.out)
     sim = simulation.Simulation(scene)
+    directory = scene.output_directory
+    policy = checkpoint.Policy(directory, scene.checkpoint_interval, scene.checkpoint_wall_interval)
+    resume_from = checkpoint.load_for_resume(sim, directory) if args.resume else None
     if not args.quiet:
         print(f"minidem: {scene.source}: law '{sim.law.name}' ({sim.entry.distribution} {sim.entry.version}), "
               f"{scene.n_particles} particle(s), {scene.wall_point.shape[0]} wall(s)")
         print(f"  time step {sim.dt:.4g} s ({sim.dt_reason})")
+        if resume_from is not None:
+            print(f"  resuming from {policy.path}: step {resume_from[1]['step']} "
+                  f"(t = {resume_from[1]['time']:.6g} s) of {resume_from[1]['total_steps']}")
+    # files a killed process left half-way through an atomic write (never under a final name)
+    checkpoint.remove_stale_temporaries(directory)
+    (directory / checkpoint.LAST_GOOD).unlink(missing_ok=True)  # from an earlier failed run
     frames = None
     if scene.vtk:
         from minidem.output.vtk import SimulationFrames
 
-        frames = SimulationFrames(sim, scene.output_directory)
+        frames = SimulationFrames(sim, directory)
+    previous_sigterm = signal.signal(signal.SIGTERM, _terminate)
     with _progress_bar(scene, args.quiet, sim.dt) as progress:
         try:
-            result = sim.run(progress=progress, on_frame=frames)
+            result = sim.run(progress=progress, on_frame=frames, checkpoints=policy, resume_from=resume_from)
+        except KeyboardInterrupt:
+            if sim.interrupted_at is not None:
+                time_s, path = sim.interrupted_at
+                print(f"minidem: stopped at t = {time_s:.6g} s; checkpoint {path}: continue with "
+                      f"`minidem run {args.file} --resume` (and the same --set/--out)", file=sys.stderr)
+            raise
         finally:
+            signal.signal(signal.SIGTERM, previous_sigterm)
             if frames is not None:
                 frames.close()
     summary = analysis.summary(result)
-    directory = scene.output_directory
     output.write_json(directory / "summary.json", summary)
     if result.trace is not None:
         from minidem.kernel import TRACE_COLUMNS
@@ -83,12 +105,18 @@ def command_run(args) -> int:
         print_summary(summary)
         if not result.separated and scene.stop == "separation":
             print(f"  warning: the contact had not ended by t = {result.time:.4g} s (run.end_time)")
-        print(f"  wrote {directory / 'summary.json'}" + (f", {frames.pvd_path} ({frames.frames} frames)"
-                                                          if frames is not None else ""))
+        print(f"  wrote {directory / 'summary.json'}, {directory / checkpoint.FINAL_STATE}"
+              + (f", {frames.pvd_path} ({frames.frames} frames)" if frames is not None else ""))
         rate = result.steps / result.wall_time if result.wall_time > 0 else float("inf")
         print(f"  {result.steps} steps in {result.wall_time:.3g} s: {rate:.4g} steps/s, "
               f"{rate * scene.n_particles:.4g} particle-steps/s on {result.threads} thread(s)")
     return EXIT_OK
+
+
+def _terminate(signum, frame):
+    """SIGTERM (a job scheduler, `kill`) stops a run as Ctrl-C does: between two chunks
+    of the compiled loop, with a checkpoint."""
+    raise KeyboardInterrupt
 
 
 class _progress_bar:
@@ -199,6 +227,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--restart", action="store_true",
                      help="discard the journal of an earlier sweep in the output directory and run every case "
                      "(default: resume it, running only the missing cases)")
+    run.add_argument("--resume", action="store_true",
+                     help="continue from OUT/checkpoint.npz (same file, --set and --out): the result is bit for "
+                          "bit that of an uninterrupted run")
     run.set_defaults(handler=command_run)
 
     show = sub.add_parser("laws", help="list installed contact laws and broken plugins")

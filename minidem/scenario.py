@@ -152,7 +152,13 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
             low=0.0, low_open=True),
         Key("contacts", "bool", False, "", "also write the contact network (particles_contacts.pvd: lines "
             "between touching particles with cell array normal_force)"),
-    ), "What is written where."),
+        Key("checkpoint_interval", "float", None, "s", "simulated time between checkpoints (OUT/checkpoint.npz, "
+            "the complete state; `minidem run --resume` continues from it bit for bit); default: none on "
+            "this account", low=0.0, low_open=True),
+        Key("checkpoint_wall_interval", "float", 600.0, "s", "wall-clock time between checkpoints, so every "
+            "long run has them; 0: none on this account", low=0.0),
+    ), "What is written where. `minidem run` also writes OUT/final_state.npz (the state at the end, "
+       "in the checkpoint format) and, when a run blows up, OUT/last_good.npz (the state before it)."),
     "sweep": ("table", (
         Key("cases", "table", REQUIRED, "", 'dotted scenario key -> list of values, e.g. {"contact.law" = '
             '["hmd", "ls"], "impact.angle_deg" = [1.0, 5.0]}; the cases are the cartesian product (first '
@@ -224,6 +230,8 @@ class Scene:
     vtk: bool = False
     output_interval: float | None = None
     vtk_contacts: bool = False
+    checkpoint_interval: float | None = None
+    checkpoint_wall_interval: float | None = None
 
     @property
     def n_particles(self) -> int:
@@ -566,6 +574,8 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         vtk=impact is None if output["vtk"] is None else output["vtk"],
         output_interval=output["interval"],
         vtk_contacts=output["contacts"],
+        checkpoint_interval=output["checkpoint_interval"],
+        checkpoint_wall_interval=output["checkpoint_wall_interval"],
     )
     wall_set.plane_point, wall_set.plane_normal = scene.wall_point, scene.wall_normal
     wall_set.plane_material = scene.wall_material

@@ -36,6 +36,12 @@ PARALLEL_ABOVE = 16
 KERNEL_FLAGS = ("SPIN", "PAIRS", "CYLINDERS", "MESHES", "PARALLEL")
 
 
+# particle-steps between two copies of the last good state: copying one particle's
+# state costs about as much as one step of it (measured on settle.toml, N = 2000: 0.13 ms
+# a copy, 0.5 ms a step), so a copy every 100 steps of 2000 particles costs ~1 %
+SNAPSHOT_PARTICLE_STEPS = 200_000
+
+
 class RunFailure(Exception):
     """The run started but could not finish: the CLI exits with code 1."""
 
@@ -129,6 +135,18 @@ class RunResult:
     energy: np.ndarray | None = None  # rows (time s, translational + rotational kinetic energy J)
 
 
+# State arrays a checkpoint holds: particle arrays, then the contact arrays of each
+# argument tuple by position (None: fixed by the scene, not saved)
+_STATE_ARRAYS = ("position", "velocity", "angular_velocity", "force", "torque", "position_at_build")
+_STATE_TUPLES = {
+    "planes": (None, None, None, "plane_history", "plane_overlap"),
+    "cylinders": (None, None, None, None, None, "cylinder_history", "cylinder_overlap"),
+    "meshes": (None, None, "mesh_offsets", "mesh_candidates", "mesh_history", "mesh_overlap"),
+    "pairs": ("pair_offsets", "pair_neighbours", "pair_history", "pair_overlap", "pair_force", "pair_torque",
+              "pair_reverse_offsets", "pair_reverse_entries"),
+}
+
+
 class State:
     """The arrays the compiled kernel advances, grouped as it takes them.
 
@@ -173,6 +191,39 @@ class State:
         normal /= np.linalg.norm(normal, axis=1)[:, None]
         return np.column_stack([i, j]), np.einsum("mk,mk->m", pair_force[touching], normal)
 
+    # -- checkpoints -------------------------------------------------------------
+    def capture(self, into: dict | None = None) -> dict[str, np.ndarray]:
+        """Copies of every array the kernel carries from one step to the next (the
+        contact lists and histories exactly as they are, so no rebuild is needed to go on).
+
+        ``into``: an earlier capture whose arrays are reused where their shapes still
+        fit (a copy into existing memory is ten times cheaper than a new allocation).
+        """
+        live = {name: getattr(self, name) for name in _STATE_ARRAYS}
+        for group, names in _STATE_TUPLES.items():
+            live.update((name, array) for name, array in zip(names, getattr(self, group)) if name is not None)
+        arrays = {}
+        for name, array in live.items():
+            target = None if into is None else into.get(name)
+            if target is not None and target.shape == array.shape and target.dtype == array.dtype:
+                np.copyto(target, array)
+                arrays[name] = target
+            else:
+                arrays[name] = array.copy()
+        arrays["builds"] = np.array(self.builds, dtype=np.int64)
+        return arrays
+
+    def restore(self, arrays: dict) -> None:
+        for name in _STATE_ARRAYS:  # in place: the kernel's particle tuple holds these arrays
+            getattr(self, name)[...] = arrays[name]
+        for group, names in _STATE_TUPLES.items():
+            items = list(getattr(self, group))
+            for k, name in enumerate(names):
+                if name is not None:  # replaced: list rebuilds change the lengths
+                    items[k] = np.array(arrays[name], dtype=items[k].dtype, order="C")
+            setattr(self, group, tuple(items))
+        self.builds = int(arrays["builds"])
+
     def count_contacts(self) -> int:
         return int(np.count_nonzero(self.pairs[3] > 0) + np.count_nonzero(self.planes[4] > 0)
                    + np.count_nonzero(self.cylinders[6] > 0) + np.count_nonzero(self.meshes[5] > 0))
@@ -205,6 +256,7 @@ class Simulation:
         self.kernel = compile_kernel(self.entry, self.spin, self.pairs, scene.walls.cylinder_base.shape[0] > 0,
                                      scene.walls.triangles.shape[0] > 0, self.parallel)
         self.state: State | None = None
+        self.interrupted_at: tuple[float, Path] | None = None  # (time s, checkpoint) after Ctrl-C
 
     # -- constants -------------------------------------------------------------
     def _reference_size(self) -> tuple[float, float]:
@@ -310,19 +362,30 @@ class Simulation:
         state.builds += 1
 
     # -- running -----------------------------------------------------------------
-    def run(self, chunk_steps: int = 200_000, progress=None, on_frame=None) -> RunResult:
+    def run(self, chunk_steps: int = 200_000, progress=None, on_frame=None, checkpoints=None,
+            resume_from=None) -> RunResult:
         """Run the scene.
 
         progress(steps, total_steps, contacts): called after every chunk (about every
         0.2 s of wall time). on_frame(time, state): called at t = 0 and every
-        ``output_interval`` of simulated time (state: :class:`State`).
+        ``output_interval`` of simulated time (state: :class:`State`); an on_frame that
+        also has ``checkpoint_state()`` and ``restore(saved, frames)`` (as
+        :class:`minidem.output.vtk.SimulationFrames`) has its series saved in checkpoints.
+
+        checkpoints: a :class:`minidem.output.checkpoint.Policy` (where and how often to
+        write checkpoints; the final state, the last good state of a failed run), or None
+        to write no file. resume_from: (arrays, meta) of a checkpoint
+        (:func:`minidem.output.checkpoint.load_for_resume`): continue from it, bit for bit.
+
+        Raises :class:`RunFailure` on a blow-up (see :mod:`minidem.blowup`), after
+        restoring ``self.state`` to the last good state (and writing it, with checkpoints).
         """
         scene, k = self.scene, self.kernel
         threads_before = numba.get_num_threads()
         threads = min(scene.threads or numba.config.NUMBA_NUM_THREADS, numba.config.NUMBA_NUM_THREADS)
         numba.set_num_threads(threads)
         try:
-            return self._run(scene, k, chunk_steps, progress, on_frame, threads)
+            return self._run(scene, k, chunk_steps, progress, on_frame, threads, checkpoints, resume_from)
         finally:
             numba.set_num_threads(threads_before)
 
@@ -332,7 +395,22 @@ class Simulation:
             return None
         return scene.output_interval if scene.output_interval is not None else end_time / 50.0
 
-    def _run(self, scene, k, chunk_steps, progress, on_frame, threads) -> RunResult:
+    def suggested_time_step(self) -> str:
+        """A smaller time step to try after a blow-up, and why."""
+        tc = self.reference_contact_time
+        if math.isfinite(tc):
+            # 50 steps per contact is the least a soft-sphere contact needs to be stable
+            # and roughly resolved; never less than a tenfold reduction
+            suggestion = min(self.dt / 10.0, tc / 50.0)
+            why = f"the shortest contact lasts about {tc:.3g} s, {tc / self.dt:.3g} steps of the current one"
+        else:
+            suggestion, why = self.dt / 10.0, "a tenth of the current one"
+        return f"try run.dt = {suggestion:.3g} s ({why}; now {self.dt:.3g} s, {self.dt_reason})"
+
+    def _run(self, scene, k, chunk_steps, progress, on_frame, threads, policy, resume_from) -> RunResult:
+        from minidem import blowup
+        from minidem.output import checkpoint
+
         state = self.state = State(self)
         probe_wall = scene.impact.wall if scene.impact is not None else (0 if scene.wall_point.shape[0] else -1)
         probe = np.zeros(8)
@@ -344,74 +422,205 @@ class Simulation:
         if not math.isfinite(end_time):
             raise ScenarioError(f"{scene.source}: run.end_time is needed: the scene has no contact to stop at")
         total_steps = int(math.ceil(end_time / self.dt - 1e-9))
-        if self.pairs or state.meshes[0].shape[0]:
-            self.rebuild(state)
         half_skin_squared = (0.5 * self.skin) ** 2
         inertia = scene.inertia
         no_trace = np.zeros((0, len(kernel.TRACE_COLUMNS)))
+        guard = blowup.Guard(self)
+        frame_interval = self.frame_interval(end_time)
+        frames_on = on_frame is not None and bool(frame_interval)
+        saves_series = frames_on and hasattr(on_frame, "checkpoint_state")
+        # The schedule is a function of the step number alone (never of wall time or of
+        # where a previous process stopped), so a resumed run samples, writes frames and
+        # checkpoints exactly where an uninterrupted one does. Kinetic energy: at least
+        # 200 samples a run, and at every frame.
+        sample_steps = max(1, int(math.ceil(end_time / 200.0 / self.dt - 1e-9)))
+        checkpoint_steps = (max(1, int(round(policy.interval / self.dt)))
+                            if policy is not None and policy.interval else None)
+        # The last good state (restored and written on a blow-up, and the checkpoint of a
+        # Ctrl-C) is copied after a check has passed, at most every snapshot_steps, so
+        # that copying it costs under ~1 % of the steps in between whatever the scene size.
+        snapshot_steps = max(1, SNAPSHOT_PARTICLE_STEPS // max(1, scene.n_particles))
 
-        def call(start_step, n_steps, resume, trace):
+        def frame_step(index):
+            return int(round(index * frame_interval / self.dt))
+
+        def call(start_step, n_steps, completing, trace):
             return k.advance(state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
                              scene.gravity, state.position_at_build, half_skin_squared, self.dt, 0.0, start_step,
-                             n_steps, resume, stop_at_separation, trace, tracking)
+                             n_steps, completing, stop_at_separation, trace, tracking)
 
+        # loop: the run loop's own state, saved with the arrays in every checkpoint
+        loop = {"steps": 0, "frames": 0, "last_frame_step": -1, "gravity_work_max": 0.0}
+        energy, trace_chunks = [], []
+        if resume_from is not None:
+            arrays, meta = resume_from
+            state.restore(arrays)
+            probe[:], stats[:], status[:] = arrays["probe"], arrays["stats"], arrays["status"]
+            loop.update({key: meta["loop"][key] for key in loop})
+            energy = [(float(t), float(e)) for t, e in arrays["energy"]]
+            if scene.trace and arrays["trace"].shape[0]:
+                trace_chunks.append(arrays["trace"])
+            if saves_series:
+                on_frame.restore(meta["frames_series"], loop["frames"])
+        elif self.pairs or state.meshes[0].shape[0]:
+            self.rebuild(state)
         try:
-            # zero-length step: initial forces (dt = 0, so no displacement increments) and
+            if resume_from is None:
+                # zero-length step: initial forces (dt = 0, so no displacement increments)
+                k.compute_forces(state.particles, state.law, state.planes, state.cylinders, state.meshes,
+                                 state.pairs, scene.gravity, 0.0, 0.0, tracking)
+                k.finish(state.particles, state.pairs, 0.0)
             # the one compilation of this kernel, reported against the law that caused it
-            k.compute_forces(state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
-                             scene.gravity, 0.0, 0.0, tracking)
-            k.finish(state.particles, state.pairs, 0.0)
-            call(0, 0, False, no_trace)
+            # (a zero-step call changes nothing: the resumed state is untouched)
+            call(loop["steps"], 0, False, no_trace)
         except numba.core.errors.NumbaError as exc:
             raise laws.LawError(f"law '{self.law.name}' from plugin '{self.entry.plugin}' "
                                 f"({self.entry.distribution}): its force function does not compile in the "
                                 f"engine: {_numba_cause(exc)}") from exc
-        frame_interval = self.frame_interval(end_time)
-        # kinetic energy is sampled at least 200 times a run, and at every frame
-        sample_interval = min(frame_interval or math.inf, end_time / 200.0)
-        next_frame = 0.0
-        if on_frame is not None and frame_interval:
-            on_frame(0.0, state)
-            next_frame = frame_interval
-        energy = [(0.0, state.kinetic_energy(inertia))]
+        if resume_from is None:
+            energy.append((0.0, state.kinetic_energy(inertia)))
+            if frames_on:
+                on_frame(0.0, state)
+                loop["frames"], loop["last_frame_step"] = 1, 0
+        fingerprint = checkpoint.fingerprint(self) if policy is not None else None
+
+        def snapshot(reuse=None):
+            """The state now, for checkpoints and as the last good state; ``reuse``: an
+            older snapshot whose memory may be overwritten (never the current good one, so
+            a Ctrl-C in the middle of a copy cannot tear it)."""
+            return {"arrays": state.capture(into=reuse["arrays"] if reuse else None),
+                    "tracking": (probe.copy(), stats.copy(), status.copy()),
+                    "loop": dict(loop), "energy": len(energy), "trace": len(trace_chunks)}
+
+        def write_state(name, snap, kind):
+            arrays = dict(snap["arrays"])
+            arrays["probe"], arrays["stats"], arrays["status"] = snap["tracking"]
+            arrays["energy"] = np.array(energy[:snap["energy"]], dtype=np.float64).reshape(-1, 2)
+            arrays["trace"] = np.concatenate(trace_chunks[:snap["trace"]]) if snap["trace"] else no_trace
+            series = on_frame.checkpoint_state() if saves_series else None
+            if series is not None:  # only the frames written up to the snapshot
+                series = {key: value[:snap["loop"]["frames"]] for key, value in series.items()}
+            step = snap["loop"]["steps"]
+            meta = {"kind": kind, "source": scene.source, "minidem": __version__, "kernel": k.__name__,
+                    "law": self.law.name, "law_package": f"{self.entry.distribution} {self.entry.version}",
+                    "fingerprint": fingerprint, "dt": self.dt, "step": step, "time": step * self.dt,
+                    "total_steps": total_steps, "loop": snap["loop"], "frames_series": series}
+            return checkpoint.write(Path(policy.directory) / name, arrays, meta)
+
+        good, spare = snapshot(), None
+        # the run loop, and the energy samples and trace chunks kept, at the end of the last
+        # chunk that passed the checks
+        checked, checked_counts = dict(loop), (len(energy), len(trace_chunks))
+
+        def fail(message, suggestion=None):
+            """Stop: go back to the last state that passed the checks, write it, raise RunFailure.
+
+            That state is rebuilt from the last copy (``good``) by replaying the steps
+            in between: runs are deterministic, so the replay gives it bit for bit."""
+            state.restore(good["arrays"])
+            for live, saved in zip((probe, stats, status), good["tracking"]):
+                live[:] = saved
+            step, completing = good["loop"]["steps"], False
+            while step < checked["steps"] and status[0] == kernel.OK:
+                taken, needs_rebuild = call(step, checked["steps"] - step, completing, no_trace)
+                step, completing = step + taken, False
+                if needs_rebuild:
+                    self.rebuild(state)
+                    completing = True
+            last_good = snapshot()
+            last_good["loop"] = dict(checked)
+            last_good["energy"], last_good["trace"] = checked_counts
+            good_step = checked["steps"]
+            written = []
+            if policy is not None:
+                written.append(str(write_state(checkpoint.LAST_GOOD, last_good, "last good")))
+            if frames_on and checked["last_frame_step"] != good_step:
+                on_frame(good_step * self.dt, state)
+                written.append("the last VTK frame")
+            where = f", written to {' and '.join(written)}" if written else ""
+            advice = suggestion or self.suggested_time_step()
+            raise RunFailure(f"{message}. {advice[0].upper()}{advice[1:]}. Last good state: step {good_step} "
+                             f"(t = {good_step * self.dt:.6g} s){where}")
+
+        def check(step):
+            at_time = step * self.dt
+            fault, loop["gravity_work_max"] = guard.check(state, at_time, loop["gravity_work_max"])
+            if fault is not None:
+                touching = blowup.contacts_of(state, fault.particle)
+                fail(f"blow-up ({fault.what}) at step {step} (t = {at_time:.6g} s): {fault.detail}; "
+                     f"particle {fault.particle} touches " + (", ".join(touching) if touching else "nothing"))
+
         started = wallclock.perf_counter()
-        steps, separated, resume = 0, False, False
+        last_checkpoint_wall = started
+        separated, completing = False, False
         chunk_goal = min(chunk_steps, 100)  # grown to about 0.2 s of wall time per chunk
-        trace_chunks = []
-        while steps < total_steps and status[0] == kernel.OK:
-            chunk = min(chunk_goal, total_steps - steps,
-                        max(1, int(math.ceil(sample_interval / self.dt - 1e-9))))
-            if on_frame is not None and frame_interval:
-                chunk = min(chunk, max(1, int(round(next_frame / self.dt)) - steps))
-            trace = np.zeros((chunk, len(kernel.TRACE_COLUMNS))) if scene.trace else no_trace
-            chunk_started = wallclock.perf_counter()
-            taken, needs_rebuild = call(steps, chunk, resume, trace)
-            if scene.trace:
-                trace_chunks.append(trace[:taken])
-            steps += taken
-            resume = False
-            if needs_rebuild:
-                self.rebuild(state)
-                resume = True
-                continue
-            elapsed = wallclock.perf_counter() - chunk_started
-            if taken == chunk and elapsed < 0.1:
-                chunk_goal = min(chunk_steps, chunk_goal * 2)
-            now = steps * self.dt
-            if taken == chunk or status[0] != kernel.OK:
-                energy.append((now, state.kinetic_energy(inertia)))
-            if on_frame is not None and frame_interval and steps >= int(round(next_frame / self.dt)):
-                on_frame(now, state)
-                next_frame += frame_interval
-            if progress is not None:
-                progress(steps, total_steps, state.count_contacts())
-            if taken < chunk and status[0] == kernel.OK:
-                separated = True
-                energy.append((now, state.kinetic_energy(inertia)))
-                break
+        try:
+            while loop["steps"] < total_steps:
+                steps = loop["steps"]
+                goal = min(total_steps, (steps // sample_steps + 1) * sample_steps, steps + chunk_goal)
+                if frames_on:
+                    goal = min(goal, max(steps + 1, frame_step(loop["frames"])))
+                if checkpoint_steps:
+                    goal = min(goal, (steps // checkpoint_steps + 1) * checkpoint_steps)
+                chunk = goal - steps
+                trace = np.zeros((chunk, len(kernel.TRACE_COLUMNS))) if scene.trace else no_trace
+                chunk_started = wallclock.perf_counter()
+                taken, needs_rebuild = call(steps, chunk, completing, trace)
+                if scene.trace:
+                    trace_chunks.append(trace[:taken])
+                steps = loop["steps"] = steps + taken
+                completing = False
+                if status[0] != kernel.OK:
+                    fail(self._fault_message(status, steps),
+                         None if status[0] != kernel.NON_FINITE_FORCE else
+                         "A law's force must be finite at every overlap > 0 and speed; if this one is, the time "
+                         f"step may be too large: {self.suggested_time_step()}")
+                if needs_rebuild:
+                    # mid-step (drifted, forces pending): a runaway particle must not
+                    # reach the neighbour grid
+                    check(steps + 1)
+                    self.rebuild(state)
+                    completing = True  # the next call completes the step from its forces
+                    continue
+                if taken == chunk and wallclock.perf_counter() - chunk_started < 0.1:
+                    chunk_goal = min(chunk_steps, chunk_goal * 2)
+                now = steps * self.dt
+                check(steps)
+                separating = taken < chunk  # stop_at_separation: the last contact ended
+                at_frame = frames_on and steps >= frame_step(loop["frames"])
+                if steps % sample_steps == 0 or steps == total_steps or at_frame or separating:
+                    energy.append((now, state.kinetic_energy(inertia)))
+                if at_frame:
+                    on_frame(now, state)
+                    loop["frames"] += 1
+                    loop["last_frame_step"] = steps
+                checked, checked_counts = dict(loop), (len(energy), len(trace_chunks))
+                if progress is not None:
+                    progress(steps, total_steps, state.count_contacts())
+                checkpoint_due = policy is not None and not separating and steps < total_steps and (
+                    (checkpoint_steps and steps % checkpoint_steps == 0)
+                    or (policy.wall_interval and wallclock.perf_counter() - last_checkpoint_wall
+                        >= policy.wall_interval))
+                if checkpoint_due or steps - good["loop"]["steps"] >= snapshot_steps:
+                    fresh = snapshot(spare)
+                    spare, good = good, fresh
+                if checkpoint_due:
+                    write_state(checkpoint.CHECKPOINT, good, "checkpoint")
+                    last_checkpoint_wall = wallclock.perf_counter()
+                if separating:
+                    separated = True
+                    break
+        except KeyboardInterrupt:
+            # Ctrl-C (or SIGTERM through the CLI) between chunks: keep what was done
+            if policy is not None:
+                self.interrupted_at = (good["loop"]["steps"] * self.dt,
+                                       write_state(checkpoint.CHECKPOINT, good, "checkpoint"))
+            raise
         wall_time = wallclock.perf_counter() - started
-        if status[0] != kernel.OK:
-            self._report_fault(status, steps)
+        if policy is not None:
+            write_state(checkpoint.FINAL_STATE, snapshot(), "final")
+            Path(policy.path).unlink(missing_ok=True)  # the run is complete: nothing to resume
+        steps = loop["steps"]
         return RunResult(
             scene=scene, law=self.law, constants=self.constants_by_pair, position=state.position,
             velocity=state.velocity, angular_velocity=state.angular_velocity, initial_velocity=scene.velocity,
@@ -423,19 +632,18 @@ class Simulation:
             energy=np.array(energy),
         )
 
-    def _report_fault(self, status, steps) -> None:
+    def _fault_message(self, status, steps) -> str:
+        """What the kernel stopped for (status codes of minidem.kernel)."""
         code, particle, partner, kind = (int(x) for x in status)
         when = f"at step {steps} (t = {steps * self.dt:.6g} s)"
         what = {kernel.PLANE: "plane wall", kernel.CYLINDER: "cylinder wall", kernel.TRIANGLE: "mesh triangle",
                 kernel.PARTICLE: "particle"}.get(kind, "partner")
         if code == kernel.NON_FINITE_FORCE:
-            raise RunFailure(f"law '{self.law.name}' ({self.entry.distribution}) returned a non-finite force "
-                             f"{when} for particle {particle} against {what} {partner}; the time step is "
-                             f"{self.dt:.3g} s ({self.dt_reason})")
+            return (f"law '{self.law.name}' ({self.entry.distribution}) returned a non-finite force {when} for "
+                    f"particle {particle} against {what} {partner}")
         if code == kernel.TUNNELLED:
-            raise RunFailure(f"particle {particle} passed through {what} {partner} {when}: the time step "
-                             f"{self.dt:.3g} s is too large for this scene; try run.dt = {self.dt / 10:.3g}")
-        raise RunFailure(f"run stopped with status {code} {when}")
+            return f"particle {particle} passed through {what} {partner} {when}: the time step is too large"
+        return f"run stopped with status {code} {when}"
 
 
 def _numba_cause(exc: Exception) -> str:

@@ -434,12 +434,19 @@ class _Collection:
         self.entries: list[str] = []
         self.frames: list[tuple[float, str]] = []
 
+    @staticmethod
+    def _entry(time_s: float, filename: str) -> str:
+        return f'    <DataSet timestep="{time_s!r}" group="" part="0" file={quoteattr(filename)}/>\n'
+
+    def restore(self, frames) -> None:
+        """Take over the frames of an earlier series (a resumed run); written at the next append."""
+        self.frames = [(float(t), str(name)) for t, name in frames]
+        self.entries = [self._entry(t, name) for t, name in self.frames]
+
     def append(self, time_s: float, filename: str) -> _PendingFile:
         """Add a frame and write the new .pvd under a temp name; pop() undoes it."""
         self.frames.append((time_s, filename))
-        self.entries.append(
-            f'    <DataSet timestep="{time_s!r}" group="" part="0" file={quoteattr(filename)}/>\n'
-        )
+        self.entries.append(self._entry(time_s, filename))
         text = ('<?xml version="1.0"?>\n'
                 '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">\n'
                 "  <Collection>\n" + "".join(self.entries) + "  </Collection>\n</VTKFile>\n")
@@ -698,6 +705,17 @@ class VTKSeriesWriter:
 
     plane_to_quad = staticmethod(plane_to_quad)
 
+    def restore(self, frames, contact_frames=()) -> None:
+        """Continue an earlier series (a resumed run): its frames ((time s, file name)
+        lists, as :attr:`frames` and :attr:`contact_frames` gave them) stay in the
+        ``.pvd`` files, and the next frame gets the next index, overwriting any file a
+        killed process wrote after them."""
+        self._check_open("restore")
+        self._wait()
+        self._particles.restore(frames)
+        self._contacts.restore(contact_frames)
+        self._frame_index = len(self._particles.frames)
+
     def flush(self) -> None:
         """Wait until every frame written so far is renamed into place (and durable if
         ``fsync``); re-raises an error from the background sync."""
@@ -817,6 +835,16 @@ class SimulationFrames:
         self.writer.write_frame(time_s, state.position, self.scene.radius, state.velocity, state.angular_velocity,
                                 state.force, self.ids, self.scene.particle_material, pairs, normal_force)
         self.frames += 1
+
+    def checkpoint_state(self) -> dict:
+        """The series so far, for a checkpoint: every frame listed is complete on disk."""
+        self.writer.flush()
+        return {"particles": self.writer.frames, "contacts": self.writer.contact_frames}
+
+    def restore(self, saved: dict, frames: int) -> None:
+        """Continue the series of a checkpoint (``frames`` frames written)."""
+        self.writer.restore(saved["particles"][:frames], saved["contacts"][:frames])
+        self.frames = frames
 
     def close(self) -> None:
         self.writer.close()

@@ -1,0 +1,158 @@
+"""Blow-up detection between chunks of the compiled loop.
+
+The kernel itself stops at the step where a law returns a non-finite force or a sphere
+passes through a wall (status codes in ``minidem.kernel``). What it cannot see from
+one contact, :class:`Guard` checks once per chunk and before every neighbour-list
+rebuild, with a few vectorised passes over the particle arrays (no Python per step):
+
+* non-finite state: a NaN or infinity in a position, velocity, angular velocity,
+  force or torque;
+* energy: the contact laws are passive (they store and dissipate energy, never create
+  it), so the kinetic energy can never exceed the initial kinetic energy plus the work
+  gravity has done, W = sum m_i g.(x_i - x_i(0)) (the scene starts with no stored
+  elastic energy: initial overlaps are refused). A run whose kinetic energy exceeds
+  ``ENERGY_FACTOR`` times that budget is unstable;
+* the domain: no particle can be farther from the box spanned by the initial
+  particles and the finite walls than a particle carrying the whole energy budget
+  could travel, with a margin of ``REACH_FACTOR``. This also keeps a runaway particle
+  from stretching the neighbour grid.
+
+The budget has a floor, 1/2 M v_c^2 with v_c the scene's characteristic speed (its
+fastest initial approach or free-fall speed over its height, at least 1 mm/s), so
+round-off in a scene at rest is never taken for a blow-up.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numba
+import numpy as np
+
+# A blow-up grows by orders of magnitude within a few contact times, so generous
+# factors cost almost nothing in detection time and rule out false alarms (velocity
+# Verlet's energy error is O(dt^2), and the integral-form laws create ~1e-3 of the
+# impact energy per loop, paper Fig 12).
+ENERGY_FACTOR = 1e3
+REACH_FACTOR = 10.0
+
+
+@dataclasses.dataclass
+class Fault:
+    what: str  # "non-finite state", "energy", "domain"
+    particle: int
+    detail: str
+
+
+class Guard:
+    def __init__(self, sim):
+        scene = sim.scene
+        self.mass, self.inertia = scene.mass, scene.inertia
+        self.gravity = np.asarray(scene.gravity, dtype=np.float64)
+        self.gravity_magnitude = float(np.linalg.norm(self.gravity))
+        self.initial_position = scene.position.copy()
+        initial_kinetic = 0.5 * float(np.dot(self.mass, np.einsum("ik,ik->i", scene.velocity, scene.velocity))
+                                      + np.dot(self.inertia, np.einsum("ik,ik->i", scene.angular_velocity,
+                                                                       scene.angular_velocity)))
+        self.floor = 0.5 * float(self.mass.sum()) * sim.characteristic_speed() ** 2
+        self.base_budget = initial_kinetic + self.floor
+        self.lightest = float(self.mass.min()) if self.mass.size else 1.0
+        lower = (scene.position - scene.radius[:, None]).min(axis=0)
+        upper = (scene.position + scene.radius[:, None]).max(axis=0)
+        walls = scene.walls
+        finite_points = [walls.triangles.reshape(-1, 3)]
+        for c in range(walls.cylinder_base.shape[0]):
+            ends = walls.cylinder_base[c] + np.outer([0.0, walls.cylinder_length[c]], walls.cylinder_axis[c])
+            finite_points.append(np.concatenate([ends - walls.cylinder_radius[c], ends + walls.cylinder_radius[c]]))
+        points = np.concatenate(finite_points)
+        if points.size:
+            lower, upper = np.minimum(lower, points.min(axis=0)), np.maximum(upper, points.max(axis=0))
+        self.lower, self.upper = lower, upper
+        self.extent = float(np.linalg.norm(upper - lower))
+
+    def budget(self, position, gravity_work_max: float) -> tuple[float, float]:
+        """(energy budget J, the largest work of gravity so far J, to carry to the next check)."""
+        work = float(np.dot(self.mass, (position - self.initial_position) @ self.gravity))
+        gravity_work_max = max(gravity_work_max, work)
+        return self.base_budget + gravity_work_max, gravity_work_max
+
+    def check(self, state, time: float, gravity_work_max: float) -> tuple[Fault | None, float]:
+        """(the first fault found or None, updated largest work of gravity)."""
+        bad, kinetic, top, gravity_work, far, distance = survey(
+            state.position, state.velocity, state.angular_velocity, state.force, state.torque, self.mass,
+            self.inertia, self.initial_position, self.gravity, self.lower, self.upper)
+        if bad >= 0:
+            arrays = {"position": state.position, "velocity": state.velocity,
+                      "angular velocity": state.angular_velocity, "force": state.force, "torque": state.torque}
+            name = next(name for name, array in arrays.items() if not np.isfinite(array[bad]).all())
+            return Fault("non-finite state", bad, f"particle {bad} has {name} {arrays[name][bad].tolist()}"), \
+                gravity_work_max
+        gravity_work_max = max(gravity_work_max, gravity_work)
+        budget = self.base_budget + gravity_work_max
+        if kinetic > ENERGY_FACTOR * budget:
+            allowed = math.sqrt(2.0 * budget / self.mass[top])
+            return Fault("energy", top, (
+                f"the kinetic energy {kinetic:.3g} J is {kinetic / budget:.3g} times the scene's energy budget "
+                f"{budget:.3g} J (initial kinetic energy + work of gravity so far; passive contacts cannot add "
+                f"energy); particle {top} moves at {float(np.linalg.norm(state.velocity[top])):.3g} m/s where "
+                f"the budget allows at most {allowed:.3g} m/s")), gravity_work_max
+        reach = (self.extent + REACH_FACTOR * math.sqrt(2.0 * budget / self.lightest) * time
+                 + 0.5 * self.gravity_magnitude * time * time)
+        if distance > reach:
+            return Fault("domain", far, (
+                f"particle {far} left the domain: it is at {state.position[far].tolist()} m, {distance:.3g} m "
+                f"outside the box spanned by the initial particles and the finite walls ({self.lower.tolist()} "
+                f"to {self.upper.tolist()} m), farther than the scene's energy could carry any particle by "
+                f"t = {time:.6g} s ({reach:.3g} m)")), gravity_work_max
+        return None, gravity_work_max
+
+
+@numba.njit(cache=True)
+def survey(position, velocity, angular_velocity, force, torque, mass, inertia, initial_position, gravity,
+           lower, upper):
+    """One pass over the particles: (first particle with a non-finite value or -1,
+    kinetic energy J, the particle with the most of it, work of gravity J, the particle
+    farthest outside the box lower-upper and its distance m (<= 0 inside))."""
+    kinetic, top, top_energy, work, far, distance = 0.0, 0, -1.0, 0.0, 0, -math.inf
+    for p in range(position.shape[0]):
+        for k in range(3):
+            if not (math.isfinite(position[p, k]) and math.isfinite(velocity[p, k])
+                    and math.isfinite(angular_velocity[p, k]) and math.isfinite(force[p, k])
+                    and math.isfinite(torque[p, k])):
+                return p, kinetic, top, work, far, distance
+        energy = 0.5 * (mass[p] * (velocity[p, 0] ** 2 + velocity[p, 1] ** 2 + velocity[p, 2] ** 2)
+                        + inertia[p] * (angular_velocity[p, 0] ** 2 + angular_velocity[p, 1] ** 2
+                                        + angular_velocity[p, 2] ** 2))
+        kinetic += energy
+        if energy > top_energy:
+            top, top_energy = p, energy
+        outside = -math.inf
+        for k in range(3):
+            work += mass[p] * gravity[k] * (position[p, k] - initial_position[p, k])
+            outside = max(outside, lower[k] - position[p, k], position[p, k] - upper[k])
+        if outside > distance:
+            far, distance = p, outside
+    return -1, kinetic, top, work, far, distance
+
+
+def contacts_of(state, particle: int) -> list[str]:
+    """The partners particle ``particle`` touches (overlap > 0) in ``state``."""
+    found = []
+    plane_overlap = state.planes[4]
+    found += [f"plane wall {w}" for w in np.flatnonzero(plane_overlap[particle] > 0)]
+    cylinder_overlap = state.cylinders[6]
+    if cylinder_overlap.shape[1]:
+        found += [f"cylinder wall {c}" for c in np.flatnonzero(cylinder_overlap[particle] > 0)]
+    offsets, candidates, overlap = state.meshes[2], state.meshes[3], state.meshes[5]
+    if candidates.shape[0]:
+        row = slice(offsets[particle], offsets[particle + 1])
+        found += [f"mesh triangle {t}" for t in candidates[row][overlap[row] > 0]]
+    offsets, neighbours, _, overlap = state.pairs[:4]
+    if neighbours.shape[0]:
+        first = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+        touching = overlap > 0
+        partners = np.concatenate([neighbours[touching & (first == particle)],
+                                   first[touching & (neighbours == particle)]])
+        found += [f"particle {j}" for j in np.sort(partners)]
+    return found

@@ -1,0 +1,395 @@
+"""Faults in runs: checkpoints and resume (bit for bit), blow-up detection, atomic
+output after a kill, determinism; and a plugin written outside the repository, installed
+with pip, listed, run and verified.
+
+Kernel variants: the multi-particle runs use the scene of tests/test_multiparticle.py
+(scenarios/settle.toml, law hm, > 16 particles: the parallel variant it compiles) and
+the single impacts scenarios/oblique.toml (hmd, compiled by the foundation tests), so
+only the out-of-repo plugin compiles new kernels. One thread everywhere: results are
+the same on any number (tests/test_multiparticle.py checks that), and a parallel region
+on a busy 2-core machine only adds waiting.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+
+from conftest import OBLIQUE, REPO, minidem_command, run_cli
+from minidem import blowup, cli, scenario, simulation
+from minidem.output import checkpoint
+
+SETTLE = REPO / "scenarios" / "settle.toml"
+# 300 spheres in 4 layers falling into a 20 mm box (the scene of test_multiparticle.py)
+SMALL_SETTLE = ["fill.0.jitter=0.0", "fill.0.count=300", "walls.0.upper=[0.02, 0.02, 1.0]",
+                "fill.0.upper=[0.02, 0.02, 1.0]", "run.threads=1"]
+
+
+def as_options(overrides):
+    return [word for value in overrides for word in ("--set", value)]
+
+
+def assert_same_state(got: dict, want: dict):
+    assert sorted(got) == sorted(want)
+    different = [name for name in want if not np.array_equal(got[name], want[name])]
+    assert not different, f"arrays that differ: {different}"
+
+
+def assert_files_complete(directory, n_particles):
+    """Every file under a final name is whole: the .pvd files parse and list only files
+    that exist, every .vtu reads back with all its points, every .npz loads."""
+    import vtk
+
+    for path in sorted(directory.iterdir()):
+        if path.name.startswith("."):
+            continue  # an atomic write's temporary: never under a final name
+        if path.suffix == ".pvd":
+            for entry in ET.parse(path).getroot().iter("DataSet"):
+                assert (directory / entry.get("file")).exists(), f"{path.name} lists a missing {entry.get('file')}"
+        elif path.suffix == ".vtu":
+            reader = vtk.vtkXMLUnstructuredGridReader()
+            reader.SetFileName(str(path))
+            reader.Update()
+            expected = n_particles if path.name.startswith("particles") else None
+            points = reader.GetOutput().GetNumberOfPoints()
+            assert points > 0 and (expected is None or points == expected), f"{path.name}: {points} points"
+        elif path.suffix == ".npz":
+            arrays, meta = checkpoint.read(path)
+            assert arrays["position"].shape == (n_particles, 3) and meta["format"] == checkpoint.FORMAT
+
+
+# --------------------------------------------------------------------------------------
+# checkpoints and --resume
+# --------------------------------------------------------------------------------------
+def test_killed_run_resumes_bit_for_bit(tmp_path):
+    # A 10,000-step settling run with a checkpoint every 1,000 steps and a VTK frame with
+    # the contact network every 1,000 steps, killed with SIGKILL once a checkpoint exists,
+    # then resumed: the final state (every array a checkpoint holds, contact histories and
+    # Verlet lists included) and every VTK file must equal, bit for bit, those of an
+    # uninterrupted run in this process that writes no checkpoint on the way.
+    overrides = SMALL_SETTLE + ["run.end_time=0.2", "output.interval=0.02", "output.contacts=true",
+                                "output.checkpoint_interval=0.02"]
+    out = tmp_path / "killed"
+    command = ["run", SETTLE, "--out", out, "--quiet", *as_options(overrides)]
+    process = subprocess.Popen(minidem_command() + [str(a) for a in command], cwd=REPO,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 600
+    try:
+        while not (out / checkpoint.CHECKPOINT).exists():
+            assert process.poll() is None, f"the run ended before its first checkpoint: {process.stderr.read()}"
+            assert time.monotonic() < deadline, "no checkpoint within 10 minutes"
+            time.sleep(0.01)
+    finally:
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+    assert not (out / checkpoint.FINAL_STATE).exists(), "the run finished before the kill"
+    assert_files_complete(out, 300)
+    saved, meta = checkpoint.read(out / checkpoint.CHECKPOINT)
+    assert 0 < meta["step"] < meta["total_steps"]
+    # the kill came after contacts (with tangential history) and list rebuilds
+    assert np.count_nonzero(saved["pair_overlap"] > 0) > 0 and int(saved["builds"]) > 1
+
+    done = run_cli(*command, "--resume")
+    assert done.returncode == 0, done.stderr
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".")], "temporary files left behind"
+    assert not (out / checkpoint.CHECKPOINT).exists()  # the run is complete
+
+    reference = tmp_path / "uninterrupted"
+    scene = scenario.load_scene(SETTLE, [o for o in overrides if "checkpoint" not in o], reference)
+    sim = simulation.Simulation(scene)
+    from minidem.output.vtk import SimulationFrames
+
+    frames = SimulationFrames(sim, reference)
+    sim.run(on_frame=frames, checkpoints=checkpoint.Policy(reference))
+    frames.close()
+    got, got_meta = checkpoint.read(out / checkpoint.FINAL_STATE)
+    want, want_meta = checkpoint.read(reference / checkpoint.FINAL_STATE)
+    assert_same_state(got, want)
+    assert got_meta["loop"] == want_meta["loop"]
+    vtk_files = sorted(p.name for p in reference.iterdir() if p.suffix in (".vtu", ".pvd"))
+    assert len(vtk_files) == 2 * 11 + 3  # particles and contacts at t = 0, 0.02, ..., 0.2; 2 .pvd; walls
+    assert sorted(p.name for p in out.iterdir() if p.suffix in (".vtu", ".pvd")) == vtk_files
+    assert [name for name in vtk_files if (out / name).read_bytes() != (reference / name).read_bytes()] == []
+
+
+def test_sigterm_writes_a_checkpoint_that_resumes_bit_for_bit(tmp_path):
+    # SIGTERM (a job scheduler's stop) between chunks: exit code 130, a checkpoint of the
+    # last copied state (not one written on schedule: no checkpoint interval is set), and
+    # a message saying how to continue; the resumed run ends as an uninterrupted one.
+    overrides = SMALL_SETTLE + ["run.end_time=0.2", "output.interval=0.02"]
+    out = tmp_path / "out"
+    command = ["run", SETTLE, "--out", out, "--quiet", *as_options(overrides)]
+    process = subprocess.Popen(minidem_command() + [str(a) for a in command], cwd=REPO, text=True,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    # the third frame is written at step 2,000, past the first copy of the state (every
+    # 666 steps of 300 particles)
+    try:
+        while not (out / "particles_000002.vtu").exists():
+            assert process.poll() is None, f"the run ended before it was stopped: {process.stderr.read()}"
+            time.sleep(0.01)
+    finally:
+        process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=300)
+    assert process.returncode == 130, stderr
+    assert "--resume" in stderr and "Traceback" not in stderr
+    arrays, meta = checkpoint.read(out / checkpoint.CHECKPOINT)
+    assert 0 < meta["step"] < meta["total_steps"]
+    done = run_cli(*command, "--resume")
+    assert done.returncode == 0, done.stderr
+
+    reference = tmp_path / "reference"
+    simulation.Simulation(scenario.load_scene(SETTLE, overrides, reference)).run(
+        checkpoints=checkpoint.Policy(reference))
+    got, _ = checkpoint.read(out / checkpoint.FINAL_STATE)
+    want, _ = checkpoint.read(reference / checkpoint.FINAL_STATE)
+    assert_same_state(got, want)
+
+
+def test_interrupted_impact_resumes_bit_for_bit_and_refuses_another_scenario(tmp_path, capsys):
+    # Ctrl-C (a KeyboardInterrupt between chunks) writes a checkpoint; --resume refuses
+    # it for a changed scenario or another engine build, and otherwise completes the run
+    # with the trace and result of an uninterrupted run.
+    out = tmp_path / "out"
+    overrides = ["output.trace=true", "impact.angle_deg=45"]
+    sim = simulation.Simulation(scenario.load_scene(OBLIQUE, overrides, out))
+    calls = []
+
+    def interrupt(steps, total, contacts):  # Ctrl-C in mid-contact (the contact lasts ~4,000 steps)
+        calls.append(steps)
+        if steps >= 2500:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        sim.run(progress=interrupt, checkpoints=checkpoint.Policy(out, interval=1000 * sim.dt))
+    stopped_at, path = sim.interrupted_at
+    assert path == out / checkpoint.CHECKPOINT and stopped_at == 2000 * sim.dt  # the last checkpoint's step
+
+    args = ["run", str(OBLIQUE), "--out", str(out), "--quiet", "--resume", *as_options(overrides)]
+    assert cli.main(args[:-4] + as_options(["output.trace=true", "impact.angle_deg=40"])) == cli.EXIT_BAD_INPUT
+    assert "was written for a different scenario" in capsys.readouterr().err
+    arrays, meta = checkpoint.read(path)
+    checkpoint.write(path, arrays, dict(meta, kernel="minidem_kernel_hmd_0000000000000000"))
+    assert cli.main(args) == cli.EXIT_BAD_INPUT
+    assert "another build of the engine or of law 'hmd'" in capsys.readouterr().err
+    checkpoint.write(path, arrays, meta)
+    assert cli.main(args) == cli.EXIT_OK, capsys.readouterr().err
+
+    reference = tmp_path / "reference"
+    simulation.Simulation(scenario.load_scene(OBLIQUE, overrides, reference)).run(
+        checkpoints=checkpoint.Policy(reference))
+    got, got_meta = checkpoint.read(out / checkpoint.FINAL_STATE)
+    want, _ = checkpoint.read(reference / checkpoint.FINAL_STATE)
+    # one trace row per step: those before the interruption came from the checkpoint
+    assert got["trace"].shape[0] == got_meta["step"] > 2500
+    assert_same_state(got, want)
+    # and with nothing left to resume
+    assert cli.main(args) == cli.EXIT_BAD_INPUT
+    assert "has finished" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------
+# blow-ups
+# --------------------------------------------------------------------------------------
+def test_blow_up_stops_with_the_last_good_state_and_a_time_step_to_try(tmp_path):
+    # The settling scene at 50 times its time step: dt = 1 ms against a Hertz contact
+    # time of ~0.3 ms, so contacts inject energy at every step. The run must stop with
+    # exit code 1 and no traceback, name the step, the particle and its contacts, suggest
+    # a time step no larger than a tenth of the given one, and leave the last good state
+    # (finite, before the failure) in last_good.npz and as the last VTK frame.
+    done = run_cli("run", SETTLE, "--out", tmp_path, *as_options(SMALL_SETTLE + ["run.end_time=0.5", "run.dt=1e-3"]))
+    assert done.returncode == 1, done.stderr
+    message = done.stderr
+    assert "Traceback" not in message and message.startswith("minidem: run failed: blow-up (energy) at step ")
+    failed_step = int(message.split("at step ")[1].split()[0])
+    assert "times the scene's energy budget" in message and " touches " in message
+    suggested = float(message.split("Try run.dt = ")[1].split()[0])
+    assert 0 < suggested <= 1e-4
+    arrays, meta = checkpoint.read(tmp_path / checkpoint.LAST_GOOD)
+    assert meta["step"] < failed_step
+    assert all(np.isfinite(arrays[name]).all() for name in ("position", "velocity", "angular_velocity", "force"))
+    last_frame = ET.parse(tmp_path / "particles.pvd").getroot().findall(".//DataSet")[-1]
+    assert float(last_frame.get("timestep")) == meta["time"]
+    assert_files_complete(tmp_path, 300)
+
+
+@pytest.fixture(scope="module")
+def settle_guard():
+    sim = simulation.Simulation(scenario.load_scene(SETTLE, SMALL_SETTLE + ["run.end_time=0.5"]))
+    return sim, blowup.Guard(sim)
+
+
+def test_guard_passes_free_fall_and_catches_nan_runaway_energy_and_escape(settle_guard):
+    sim, guard = settle_guard
+    state = simulation.State(sim)
+    assert guard.check(state, 0.0, 0.0)[0] is None
+    # every particle in free fall for 0.1 s: energy from gravity only, allowed
+    t, g = 0.1, sim.scene.gravity
+    state.position += 0.5 * g * t * t
+    state.velocity[:] = g * t
+    fault, work = guard.check(state, t, 0.0)
+    assert fault is None and work == pytest.approx(float(sim.scene.mass.sum()) * 9.81 * 0.5 * 9.81 * t * t)
+    # one particle 100 times faster than the whole energy budget allows (1e4 times the energy)
+    fast = simulation.State(sim)
+    budget = guard.budget(fast.position, 0.0)[0]
+    fast.velocity[7] = [0.0, 100.0 * math.sqrt(2.0 * budget / sim.scene.mass[7]), 0.0]
+    fault, _ = guard.check(fast, 1e-3, 0.0)
+    assert (fault.what, fault.particle) == ("energy", 7)
+    # a NaN spin
+    broken = simulation.State(sim)
+    broken.angular_velocity[12, 2] = math.nan
+    fault, _ = guard.check(broken, 1e-3, 0.0)
+    assert (fault.what, fault.particle) == ("non-finite state", 12) and "angular velocity" in fault.detail
+    # a particle 1 km away after 1 ms, at rest: no energy could have carried it there
+    escaped = simulation.State(sim)
+    escaped.position[42, 0] += 1e3
+    fault, _ = guard.check(escaped, 1e-3, 0.0)
+    assert (fault.what, fault.particle) == ("domain", 42) and "left the domain" in fault.detail
+
+
+# --------------------------------------------------------------------------------------
+# determinism
+# --------------------------------------------------------------------------------------
+def final_arrays(result, sim):
+    arrays = sim.state.capture()
+    arrays["energy"] = result.energy
+    arrays["trace"] = result.trace if result.trace is not None else np.zeros(0)
+    arrays["stats"] = np.array([result.first_contact_time, result.last_separation_time, result.max_overlap,
+                                result.peak_normal_force, result.peak_tangential_force])
+    return arrays
+
+
+@pytest.mark.parametrize("case", ["impact", "settle"])
+def test_runs_are_deterministic(case):
+    # Same input, same threads: identical bits in every result array, the sampled
+    # kinetic energy and the per-step trace included (their schedule depends on the
+    # step count alone, never on wall time).
+    if case == "impact":
+        load = lambda: scenario.load_scene(OBLIQUE, ["output.trace=true", "impact.angle_deg=20"])  # noqa: E731
+    else:
+        load = lambda: scenario.load_scene(SETTLE, SMALL_SETTLE + ["fill.0.count=100", "run.end_time=0.03",  # noqa: E731
+                                                                   "output.vtk=false"])
+    runs = []
+    for _ in range(2):
+        sim = simulation.Simulation(load())
+        runs.append(final_arrays(sim.run(), sim))
+    assert_same_state(runs[0], runs[1])
+
+
+# --------------------------------------------------------------------------------------
+# a plugin written outside the repository
+# --------------------------------------------------------------------------------------
+PLUGIN_PYPROJECT = '''
+[build-system]
+requires = ["setuptools>=61"]
+build-backend = "setuptools.build_meta"
+
+[project]
+name = "minidem-hooke-coulomb"
+version = "2.5.1"
+description = "A contact law written by a third party"
+
+[project.entry-points.minidem]
+hooke = "minidem_hooke_coulomb"
+
+[tool.setuptools]
+py-modules = ["minidem_hooke_coulomb"]
+'''
+
+PLUGIN_MODULE = '''
+"""Linear normal spring, incremental linear tangential spring capped at mu Fn; no damping."""
+import math
+
+import numba
+
+from minidem import hookimpl
+from minidem.laws import ContactLaw, HistorySlot, Parameter
+
+
+def prepare(pair, params):
+    return {"normal_stiffness": params["normal_stiffness"],
+            "tangential_stiffness": params["stiffness_ratio"] * params["normal_stiffness"],
+            "friction": params["friction"]}
+
+
+def contact_time(pair, constants, effective_radius, effective_mass, normal_speed):
+    return math.pi * math.sqrt(effective_mass / constants["normal_stiffness"])  # half a spring period
+
+
+@numba.njit(cache=True)
+def hooke_coulomb_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+                        normal_velocity, tangential_increment, tangential_velocity, history):
+    normal_force = constants[0] * normal_overlap
+    fx = history[0] + constants[1] * tangential_increment[0]
+    fy = history[1] + constants[1] * tangential_increment[1]
+    fz = history[2] + constants[1] * tangential_increment[2]
+    magnitude = math.sqrt(fx * fx + fy * fy + fz * fz)
+    limit = constants[2] * normal_force
+    if magnitude > limit:
+        scale = limit / magnitude
+        fx, fy, fz = fx * scale, fy * scale, fz * scale
+    history[0], history[1], history[2] = fx, fy, fz
+    return normal_force, fx, fy, fz
+
+
+@hookimpl
+def minidem_register_laws(registry):
+    registry.add(ContactLaw(
+        name="hooke_coulomb",
+        description="linear spring, incremental tangential spring, Coulomb cap",
+        parameters=(Parameter("friction", None, "-", "Coulomb friction coefficient", low=0.0, required=True),
+                    Parameter("normal_stiffness", 1e8, "N/m", "kn", low=0.0, low_open=True),
+                    Parameter("stiffness_ratio", 0.8, "-", "kt / kn", low=0.0, low_open=True)),
+        constants=("normal_stiffness", "tangential_stiffness", "friction"),
+        history=(HistorySlot("tangential_force", "spring force (N)", vector=True),),
+        prepare=prepare, force=hooke_coulomb_force, contact_time=contact_time))
+'''
+
+
+def test_a_plugin_written_outside_the_repository_is_installed_listed_run_and_verified(tmp_path):
+    # The third-party workflow of docs/writing-a-contact-law.md, for real: a folder with a
+    # pyproject.toml and an entry point, installed with pip (into a folder on PYTHONPATH,
+    # so the test environment stays as it was), then `minidem laws`, `minidem run` and
+    # `minidem verify` in fresh processes, as a user would.
+    source = tmp_path / "hooke-coulomb"
+    source.mkdir()
+    (source / "pyproject.toml").write_text(textwrap.dedent(PLUGIN_PYPROJECT))
+    (source / "minidem_hooke_coulomb.py").write_text(textwrap.dedent(PLUGIN_MODULE))
+    site = tmp_path / "site"
+    pip = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
+                          "--target", str(site), str(source)], capture_output=True, text=True)
+    assert pip.returncode == 0, pip.stderr
+    env = {"PYTHONPATH": str(site)}
+
+    listed = run_cli("laws", env=env)
+    assert listed.returncode == 0, listed.stderr
+    assert "hooke_coulomb  [minidem-hooke-coulomb 2.5.1, plugin 'hooke']" in listed.stdout
+    assert "BROKEN" not in listed.stdout
+
+    # the paper's normal impact: an undamped linear spring returns en = 1 after half a
+    # period, pi sqrt(m/k) (paper eq 27)
+    ran = run_cli("run", OBLIQUE, "--out", tmp_path / "run", "--set", "contact.law=hooke_coulomb",
+                  "--set", "impact.angle_deg=0", env=env)
+    assert ran.returncode == 0, ran.stderr
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    mass = 4.0 / 3.0 * math.pi * 0.025**3 * 2650.0
+    assert summary["law"] == "hooke_coulomb"
+    assert summary["contact_duration_s"] == pytest.approx(math.pi * math.sqrt(mass / 1e8), rel=1e-3)
+    assert summary["en"] == pytest.approx(1.0, abs=1e-6)
+
+    judged = run_cli("verify", "hooke_coulomb", "--out", tmp_path / "verify", env=env)
+    assert judged.returncode == 0, judged.stdout + judged.stderr
+    assert "FAIL" not in judged.stdout
+    for check in ("elastic impacts create no energy", "rigid-body sliding limit", "normal-impact duration",
+                  "frame invariance (rotated collision)", "sphere-sphere forces equal and opposite"):
+        assert f"PASS  {check}" in judged.stdout
+    report = json.loads((tmp_path / "verify" / "verify.json").read_text())
+    assert (report["package"], report["version"]) == ("minidem-hooke-coulomb", "2.5.1")
