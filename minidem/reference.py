@@ -17,8 +17,10 @@ integral ones; ``f1``, ``f2`` are HMD's load-reversal points Ft*, Ft**):
     ls      stick  Ft' = kt vs                       slide  Ft = mu Fn sign
     hm      stick  Ft' = 8 G* a vs                   slide  Ft = mu Fn sign
     hmd     Ft' = 8 G* a theta vs +/- mu Fn' (1 - theta)   (eq 21, theta from eq 22 with the
-            increments -> 0; theta = 1 while Fn' > 0 and 8 G* a |vs| < mu Fn', eqs 19/24);
-            f1' = mu Fn', f2' = -mu Fn' (eq 23)
+            increments -> 0; theta = 1 while Fn' > 0 and 8 G* a |vs| < mu Fn', eqs 19/24,
+            and in the special state of the chosen reading of eq 24);
+            f1' = mu Fn', f2' = -mu Fn' (eq 23); S' = vs (total displacement), D' the
+            deficit rate of special_case 4
     lth     s' = vs, Ft = mu Fn [1 - (1 - min(|s|/s*, 1))^1.5] sign(s), s* = mu delta / kappa,
             on the total displacement (eq 35; no cut-back of s at s*, as the engine's law:
             see docs/laws.md)
@@ -39,8 +41,14 @@ choices" once written, which the engine follows):
   makes the "reverse when admissible" and "reverse at once" readings coincide in the limit
   of small steps; after slip HMD restarts on the unloading branch with Ft* = mu Fn if vs
   has reversed, else on the loading branch with theta = 1 (eq 19 special case);
-- HMD's eq 19/24 special case is the negation of eq 19 tested continuously (the paper's
-  eq 24 is garbled in the extraction): theta = 1 while kappa |vs| < mu u;
+- HMD's eq 19/24 special case: theta = 1 while eq 19 holds, kappa |vs| < mu u (the
+  paper's eq 24 is garbled in the extraction); ``Impact.special_case`` selects when a
+  special state entered there ends, as the engine's ``special_case`` parameter: 0 when
+  eq 19 stops holding (default), 1-3 and 5 at an event where the reading's end condition
+  (``_Law.special_margin``) reaches zero, 4 where the displacement deficit D reaches zero
+  (docs/laws.md "HMD implementation choices", item 9);
+- a full reversal at Ft = -Ft* needs Ft* > 0 (eq 23 drives Ft* below zero once Fn has
+  fallen enough, and -Ft* is then no point of the mirrored curve; the engine's guard);
 - a reload that climbs back to Ft* returns to the loading branch; an unload that reaches
   -Ft* is a full reversal: loading in the opposite direction;
 - LS kn is the paper's eq 28, kn = 1.2024 (m^1/2 E*^2 R V)^2/5 at the impact speed V
