@@ -17,8 +17,10 @@ integral ones; ``f1``, ``f2`` are HMD's load-reversal points Ft*, Ft**):
     ls      stick  Ft' = kt vs                       slide  Ft = mu Fn sign
     hm      stick  Ft' = 8 G* a vs                   slide  Ft = mu Fn sign
     hmd     Ft' = 8 G* a theta vs +/- mu Fn' (1 - theta)   (eq 21, theta from eq 22 with the
-            increments -> 0; theta = 1 while Fn' > 0 and 8 G* a |vs| < mu Fn', eqs 19/24);
-            f1' = mu Fn', f2' = -mu Fn' (eq 23)
+            increments -> 0; theta = 1 while Fn' > 0 and 8 G* a |vs| < mu Fn', eqs 19/24,
+            and in the special state of the chosen reading of eq 24);
+            f1' = mu Fn', f2' = -mu Fn' (eq 23); S' = vs (total displacement), D' the
+            deficit rate of special_case 4
     lth     s' = vs, Ft = mu Fn [1 - (1 - min(|s|/s*, 1))^1.5] sign(s), s* = mu delta / kappa,
             on the total displacement (eq 35; no cut-back of s at s*, as the engine's law:
             see docs/laws.md)
@@ -39,8 +41,14 @@ choices" once written, which the engine follows):
   makes the "reverse when admissible" and "reverse at once" readings coincide in the limit
   of small steps; after slip HMD restarts on the unloading branch with Ft* = mu Fn if vs
   has reversed, else on the loading branch with theta = 1 (eq 19 special case);
-- HMD's eq 19/24 special case is the negation of eq 19 tested continuously (the paper's
-  eq 24 is garbled in the extraction): theta = 1 while kappa |vs| < mu u;
+- HMD's eq 19/24 special case: theta = 1 while eq 19 holds, kappa |vs| < mu u (the
+  paper's eq 24 is garbled in the extraction); ``Impact.special_case`` selects when a
+  special state entered there ends, as the engine's ``special_case`` parameter: 0 when
+  eq 19 stops holding (default), 1-3 and 5 at an event where the reading's end condition
+  (``_Law.special_margin``) reaches zero, 4 where the displacement deficit D reaches zero
+  (docs/laws.md "HMD implementation choices", item 9);
+- a full reversal at Ft = -Ft* needs Ft* > 0 (eq 23 drives Ft* below zero once Fn has
+  fallen enough, and -Ft* is then no point of the mirrored curve; the engine's guard);
 - a reload that climbs back to Ft* returns to the loading branch; an unload that reaches
   -Ft* is a full reversal: loading in the opposite direction;
 - LS kn is the paper's eq 28, kn = 1.2024 (m^1/2 E*^2 R V)^2/5 at the impact speed V
@@ -74,6 +82,7 @@ class Impact:
     friction: float = 0.1
     stiffness_ratio: float | None = None  # LS only: kappa = kt/kn; default eq 10
     normal_stiffness: float | None = None  # LS only: kn; default eq 28
+    special_case: int = 0  # HMD only: reading of eq 24, as the engine's hmd parameter
 
     @property
     def mass(self) -> float:
@@ -118,8 +127,14 @@ class Solution:
         return {"en": self.en, "et": self.et, "x": self.x, "y1": self.y1, "y2": self.y2}
 
 
-# state indices
-DELTA, U, VT, WR, Q, F1, F2 = range(7)
+# state indices: S is the total tangential displacement, D the displacement deficit of
+# special_case 4 (both HMD only)
+DELTA, U, VT, WR, Q, F1, F2, S, D = range(9)
+NSTATE = 9
+# HMD's special state (the third item of a mode): off, on because eq 19 holds, on after
+# eq 19 stopped holding until the reading's end condition (special_case 1-3), on while the
+# deficit is positive (special_case 4), on until the normal force stops growing (5)
+SPECIAL_OFF, SPECIAL_EQ19, SPECIAL_LATCHED, SPECIAL_DEFICIT = 0, 1, 2, 3
 
 # Dormand-Prince 5(4) tableau
 _C = (0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0)
@@ -140,7 +155,8 @@ _E = tuple(b5 - b4 for b5, b4 in zip(_B5, _B4))
 class _Law:
     """Right-hand side, tangential force, events and transitions of one law.
 
-    A mode is a tuple (kind, sign, flag). Each event function is positive inside the mode
+    A mode is a tuple (kind, sign, flag, anchor), anchor the (S, Fn, Ft) where HMD's special
+    state began (or None). Each event function is positive inside the mode
     and the event happens where it reaches zero; ``transition`` returns the new mode and
     state.
     """
@@ -151,6 +167,9 @@ class _Law:
         self.m = impact.mass
         self.R = impact.radius
         self.mu = impact.friction
+        self.special_case = impact.special_case
+        if self.special_case not in range(6):
+            raise ValueError(f"reference: special_case must be 0..5, got {self.special_case!r}")
         self.spin_factor = self.R**2 * self.m / (0.4 * self.m * self.R**2)  # m R^2 / I = 5/2
         e_star, g_star = impact.effective_modulus, impact.effective_shear_modulus
         self.linear = self.name == "ls"
@@ -186,17 +205,20 @@ class _Law:
         slides = vti > 0.0 and sliding_ratio > mu
         if name == "hmd":
             if slides:
-                return ("slide", 1.0, 0)
-            return ("load", 1.0, 1)  # eq 19: theta = 1 while kappa vs < mu u
+                return ("slide", 1.0, 0, None)
+            # eq 19: theta = 1 while kappa vs < mu u
+            if self.special_case == 4:
+                return ("load", 1.0, SPECIAL_DEFICIT, None)
+            return ("load", 1.0, SPECIAL_EQ19, (0.0, 0.0, 0.0))
         if name == "hmdns_integral":
-            return ("capped", 1.0, 0) if slides else ("elastic", 0.0, 0)
+            return ("capped", 1.0, 0, None) if slides else ("elastic", 0.0, 0, None)
         if name == "lth":
-            return ("slide", 1.0, 0) if slides else ("stick", 1.0, 0)
-        return ("slide", 1.0, 0) if slides else ("stick", 0.0, 0)
+            return ("slide", 1.0, 0, None) if slides else ("stick", 1.0, 0, None)
+        return ("slide", 1.0, 0, None) if slides else ("stick", 0.0, 0, None)
 
     # -- tangential force ---------------------------------------------------------
     def tangential(self, mode, y, fn):
-        kind, sign, _ = mode
+        kind, sign = mode[:2]
         if kind in ("slide", "capped"):
             return sign * self.mu * fn
         name = self.name
@@ -211,7 +233,7 @@ class _Law:
         return self.shear_stiffness(y[DELTA]) * y[Q]  # integral laws, elastic
 
     def theta(self, mode, y, fn):
-        kind, sign, special = mode
+        kind, sign, special = mode[:3]
         if special or fn <= 0.0:
             return 1.0
         f = sign * y[Q]
@@ -228,9 +250,10 @@ class _Law:
         fn, dfn = self.normal(y[DELTA], y[U])
         ft = self.tangential(mode, y, fn)
         vs = y[VT] + y[WR]
-        kind, sign, _ = mode
+        kind, sign = mode[:2]
         name = self.name
         dq = 0.0
+        ds = dd = 0.0
         if name in ("ls", "hm"):
             dq = sign * self.mu * dfn if kind == "slide" else self.shear_stiffness(y[DELTA]) * vs
         elif name == "hmd":
@@ -241,6 +264,10 @@ class _Law:
                 branch = -1.0 if kind == "unload" else 1.0
                 dq = sign * (self.shear_stiffness(y[DELTA]) * theta * sign * vs
                              + branch * self.mu * dfn * (1.0 - theta))
+            ds = vs
+            if mode[2] == SPECIAL_DEFICIT:
+                # mu Fn' / 8 G* a = mu u / kappa; |vs| is owed only while Fn grows
+                dd = self.mu * y[U] / self.kappa - (abs(vs) if y[U] > 0.0 else 0.0)
         elif name == "lth":
             dq = vs
         elif name == "hmdns_integral_reset" and kind == "slide":
@@ -248,13 +275,13 @@ class _Law:
         else:
             dq = vs
         return (y[U], -fn / self.m, -ft / self.m, -self.spin_factor * ft / self.m, dq,
-                self.mu * dfn, -self.mu * dfn)
+                self.mu * dfn, -self.mu * dfn, ds, dd)
 
     # -- events -------------------------------------------------------------------
     def events(self, mode, y):
         """[(g, label)]: g > 0 inside the mode; the first zero crossing triggers ``label``."""
         fn, dfn = self.normal(y[DELTA], y[U])
-        kind, sign, special = mode
+        kind, sign, special = mode[:3]
         vs = y[VT] + y[WR]
         mu_fn = self.mu * fn
         out = [(y[DELTA], "end"), (y[U], "max_overlap")]
@@ -284,17 +311,57 @@ class _Law:
             v = sign * vs
             f = sign * y[Q]
             rate_gap = self.mu * y[U] - self.kappa * abs(v)  # eq 19 holds while > 0
-            out.append((rate_gap if special else -rate_gap, "special"))
+            if special == SPECIAL_EQ19:
+                out.append((rate_gap, "special"))
+            elif special == SPECIAL_DEFICIT:
+                out.append((y[D], "special_end"))
+            else:
+                out.append((-rate_gap, "special"))
+            if special == SPECIAL_LATCHED:
+                out.append((self.special_margin(mode, y, fn), "special_end"))
             if kind == "load":
                 out.append((v, "unload"))
             elif kind == "unload":
-                out += [(-v, "reload"), (f + y[F1], "reverse")]
+                # a full reversal needs a reversal point: eq 23 drives Ft* below zero once
+                # Fn has fallen enough, and -Ft* is then no point of the mirrored curve
+                # (the engine's guard; without it the event fires at f = -Ft* > 0)
+                out += [(-v, "reload"), (f + y[F1] if y[F1] > 0.0 else 1.0, "reverse")]
             else:
                 out += [(v, "unload"), (y[F1] - f, "load")]
         return out
 
+    def special_margin(self, mode, y, fn):
+        """> 0 while a latched special state goes on (special_case 1, 2, 3, 5)."""
+        if self.special_case == 5:
+            return y[U]
+        if self.special_case == 1:
+            return self.mu * fn - self.shear_stiffness(y[DELTA]) * abs(y[S])
+        s0, fn0, q0 = mode[3]
+        if self.special_case == 2:
+            return self.mu * (fn - fn0) - abs(y[Q] - q0)
+        return self.mu * (fn - fn0) - self.shear_stiffness(y[DELTA]) * abs(y[S] - s0)
+
+    def _enter(self, y, fn):
+        """Special state where eq 19 starts to hold, with its anchor."""
+        if self.special_case == 4:
+            return SPECIAL_DEFICIT, None
+        return SPECIAL_EQ19, (y[S], fn, y[Q])
+
+    def _special(self, y, sign, mode=None):
+        """Special state after a branch switch: eq 19 now, or a state that goes on."""
+        fn, _ = self.normal(y[DELTA], y[U])
+        eq19 = self.mu * y[U] - self.kappa * abs(y[VT] + y[WR]) > 0.0
+        old = SPECIAL_OFF if mode is None else mode[2]
+        if old == SPECIAL_DEFICIT:
+            return old, None
+        if eq19:
+            return (SPECIAL_EQ19, mode[3]) if old != SPECIAL_OFF else self._enter(y, fn)
+        if old != SPECIAL_OFF and self.special_case != 0 and self.special_margin(mode, y, fn) > 0.0:
+            return SPECIAL_LATCHED, mode[3]
+        return SPECIAL_OFF, None
+
     def transition(self, mode, y, label):
-        kind, sign, special = mode
+        kind, sign, special = mode[:3]
         y = list(y)
         fn, dfn = self.normal(y[DELTA], y[U])
         vs = y[VT] + y[WR]
@@ -304,47 +371,59 @@ class _Law:
         if label in ("slide+", "slide-"):
             new_sign = 1.0 if label == "slide+" else -1.0
             if name == "hmdns_integral":
-                return ("capped", new_sign, 0), y
+                return ("capped", new_sign, 0, None), y
             if name == "lth":
-                return ("slide", new_sign, 0), y
+                return ("slide", new_sign, 0, None), y
             if name == "hmdns_integral_reset":
                 y[Q] = new_sign * self.mu * self.e_star * max(y[DELTA], 0.0) / (6.0 * self.g_star)
             else:
                 y[Q] = new_sign * self.mu * fn
-            return ("slide", new_sign, 0), y
+            y[D] = 0.0  # on the Coulomb limit the force is on every curve
+            return ("slide", new_sign, 0, None), y
         if label == "stick":
             if name == "hmdns_integral":
-                return ("elastic", 0.0, 0), y
+                return ("elastic", 0.0, 0, None), y
             if name == "hmd":
                 y[Q] = sign * self.mu * fn
                 y[F1], y[F2] = self.mu * fn, -self.mu * fn
                 if sign * vs < 0.0:
-                    return ("unload", sign, self._special(y, sign)), y
-                return ("load", sign, 1), y
+                    return ("unload", sign, *self._special(y, sign)), y
+                # slip ends where the trial rate is back inside the cone: eq 19 holds
+                return ("load", sign, *self._enter(y, fn)), y
             if name == "lth":
-                return ("stick", sign, 0), y  # q = sign s* already
+                return ("stick", sign, 0, None), y  # q = sign s* already
             if name == "hmdns_integral_reset":
-                return ("stick", 0.0, 0), y
+                return ("stick", 0.0, 0, None), y
             y[Q] = sign * self.mu * fn
-            return ("stick", 0.0, 0), y
+            return ("stick", 0.0, 0, None), y
         if label == "zero":
-            return (kind, -sign, special), y
+            return (kind, -sign, special, mode[3]), y
         if label == "special":
-            return (kind, sign, 1 - special), y
+            if special == SPECIAL_OFF:
+                return (kind, sign, *self._enter(y, fn)), y
+            if special == SPECIAL_LATCHED:  # eq 19 holds again: the state goes on
+                return (kind, sign, SPECIAL_EQ19, mode[3]), y
+            # eq 19 stops holding: the reading's end condition decides (0: at once)
+            if self.special_case != 0 and self.special_margin(mode, y, fn) > 0.0:
+                return (kind, sign, SPECIAL_LATCHED, mode[3]), y
+            return (kind, sign, SPECIAL_OFF, None), y
+        if label == "special_end":
+            y[D] = 0.0
+            if name == "hmd" and abs(y[Q]) >= self.mu * fn * (1.0 - 1e-9):
+                # special_case 2 from a zero anchor ends exactly on the Coulomb limit
+                return self.transition(mode, y, "slide+" if y[Q] > 0.0 else "slide-")
+            return (kind, sign, SPECIAL_OFF, None), y
         if label == "unload":
             y[F1] = sign * y[Q]
-            return ("unload", sign, self._special(y, sign)), y
+            return ("unload", sign, *self._special(y, sign, mode)), y
         if label == "reload":
             y[F2] = sign * y[Q]
-            return ("reload", sign, self._special(y, sign)), y
+            return ("reload", sign, *self._special(y, sign, mode)), y
         if label == "load":
-            return ("load", sign, self._special(y, sign)), y
+            return ("load", sign, *self._special(y, sign, mode)), y
         if label == "reverse":
-            return ("load", -sign, self._special(y, -sign)), y
+            return ("load", -sign, *self._special(y, -sign, mode)), y
         raise AssertionError(label)
-
-    def _special(self, y, sign):
-        return 1 if self.mu * y[U] - self.kappa * abs(y[VT] + y[WR]) > 0.0 else 0
 
 
 def _step(law, mode, y, h):
@@ -354,10 +433,10 @@ def _step(law, mode, y, h):
             yi = y
         else:
             a = _A[i]
-            yi = [y[j] + h * sum(a[s] * k[s][j] for s in range(i)) for j in range(7)]
+            yi = [y[j] + h * sum(a[s] * k[s][j] for s in range(i)) for j in range(NSTATE)]
         k.append(law.rhs(mode, yi))
-    y_new = [y[j] + h * sum(_B5[s] * k[s][j] for s in range(7)) for j in range(7)]
-    err = [h * sum(_E[s] * k[s][j] for s in range(7)) for j in range(7)]
+    y_new = [y[j] + h * sum(_B5[s] * k[s][j] for s in range(7)) for j in range(NSTATE)]
+    err = [h * sum(_E[s] * k[s][j] for s in range(7)) for j in range(NSTATE)]
     return y_new, err
 
 
@@ -382,11 +461,11 @@ def solve(impact: Impact, rtol: float = 1e-10, max_steps: int = 200_000) -> Solu
     q_scale = mu_scale * (delta_scale if impact.law in ("lth", "hmdns_integral", "hmdns_integral_reset")
                           else force_scale)
     scale = (delta_scale, impact.speed, impact.speed, impact.speed, q_scale, mu_scale * force_scale,
-             mu_scale * force_scale)
+             mu_scale * force_scale, mu_scale * delta_scale, mu_scale * delta_scale)
     t_tol = 1e-15 * time_scale
 
     mode = law.initial(vni, vti)
-    y = [0.0, vni, vti, 0.0, 0.0, 0.0, 0.0]
+    y = [0.0, vni, vti, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
     t, h = 0.0, 1e-4 * time_scale * rtol ** 0.2
     steps = rejected = 0
     events = [(0.0, f"start in {mode[0]}")]

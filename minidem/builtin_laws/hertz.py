@@ -11,6 +11,7 @@ tangential force:
     hmdns_integral_reset eq 38 with the displacement reset at the Coulomb limit (eq 40)
 """
 
+import dataclasses
 import math
 
 import numba
@@ -26,7 +27,7 @@ from minidem.builtin_laws.common import (
 from minidem.laws import ContactLaw, HistorySlot, Parameter
 
 # indices into the constants row (the order of HERTZ_CONSTANTS)
-HERTZ_MODULUS, SHEAR_MODULUS, MU, DAMPING, KAPPA, REVERSAL_CHECK = range(6)
+HERTZ_MODULUS, SHEAR_MODULUS, MU, DAMPING, KAPPA, REVERSAL_CHECK, SPECIAL_CASE = range(7)
 HERTZ_CONSTANTS = (
     "hertz_modulus",  # 4/3 E*, Pa: Fn = hertz_modulus sqrt(R*) d^1.5
     "shear_modulus",  # 8 G*, Pa: kt = 8 G* a, a = sqrt(R* d)
@@ -34,6 +35,7 @@ HERTZ_CONSTANTS = (
     "damping_factor",  # alpha: dashpot alpha sqrt(m* K) d^(1/4), K = 4/3 E* sqrt(R*)
     "stiffness_ratio",  # kappa = 4 G*/E* (eq 10)
     "reversal_check",  # hmd only, see hmd_force
+    "special_case",  # hmd only: reading of eq 24, see SPECIAL_* below
 )
 
 
@@ -45,6 +47,7 @@ def prepare_hertz(pair, params):
         "damping_factor": hertz_damping_factor(params["restitution"]),
         "stiffness_ratio": pair.stiffness_ratio,
         "reversal_check": params.get("reversal_check", 1.0),
+        "special_case": params.get("special_case", 0.0),
     }
 
 
@@ -74,7 +77,21 @@ def hertz_normal_force(constants, effective_radius, effective_mass, normal_overl
 # stiffness 8 G* a theta. In the paper's planar impact the cross component is zero and
 # the law is exactly eqs 18-24.
 FT, AXIS, FT_STAR, FT_2STAR, MODE, SLIDING = 0, 3, 6, 7, 8, 9
+# the eq 19/24 special case (see SPECIAL_* and docs/laws.md): the total tangential
+# displacement, whether the special state is on, and the state when it began
+DISPLACEMENT, SPECIAL, ANCHOR_DISPLACEMENT, ANCHOR_FORCE, ANCHOR_NORMAL, DEFICIT = 10, 13, 14, 17, 20, 21
 VIRGIN, LOADING, UNLOADING, RELOADING = 0.0, 1.0, 2.0, 3.0
+# Readings of the paper's eq 24 ("theta = 1 in eq 21 UNTIL 8 G* a [.] > [.] Fn", the
+# symbols lost in the extraction). theta = 1 whenever eq 19 holds (dFn > 0 and
+# 8 G* a |dd| < mu dFn); the readings differ in when a special state entered there ends:
+SPECIAL_STEP = 0  # at once: eq 24 is eq 19 negated, per step
+SPECIAL_TOTAL = 1  # when 8 G* a |delta_t| > mu Fn, delta_t the total displacement (models.md)
+SPECIAL_FORCE = 2  # when |Ft - Ft0| > mu (Fn - Fn0): accumulated eq 19, force form
+SPECIAL_DISPLACEMENT = 3  # when 8 G* a |delta_t - delta_t0| > mu (Fn - Fn0): displacement form
+SPECIAL_DEFICIT = 4  # when sum(mu dFn / 8 G* a) - sum(|dd| while dFn > 0) < 0
+SPECIAL_COMPRESSION = 5  # when Fn stops growing (the description of Fig 11)
+SPECIAL_READINGS = (SPECIAL_STEP, SPECIAL_TOTAL, SPECIAL_FORCE, SPECIAL_DISPLACEMENT, SPECIAL_DEFICIT,
+                    SPECIAL_COMPRESSION)
 
 
 @numba.njit(cache=True, inline="always")
@@ -93,6 +110,20 @@ def _hmd_theta(mode, force_along, ft_star, ft_2star, fn, mu):
     return min(max(theta_cubed, 0.0), 1.0) ** (1.0 / 3.0)
 
 
+@numba.njit(cache=True, inline="always")
+def _special_margin(reading, history, ftx, fty, ftz, fn, stiffness, mu):
+    """> 0 while the special state entered under eq 19 goes on (readings 1-3)."""
+    sx, sy, sz = history[DISPLACEMENT], history[DISPLACEMENT + 1], history[DISPLACEMENT + 2]
+    if reading == SPECIAL_TOTAL:
+        return mu * fn - stiffness * norm3(sx, sy, sz)
+    normal_gain = mu * (fn - history[ANCHOR_NORMAL])
+    if reading == SPECIAL_FORCE:
+        return normal_gain - norm3(ftx - history[ANCHOR_FORCE], fty - history[ANCHOR_FORCE + 1],
+                                   ftz - history[ANCHOR_FORCE + 2])
+    return normal_gain - stiffness * norm3(sx - history[ANCHOR_DISPLACEMENT], sy - history[ANCHOR_DISPLACEMENT + 1],
+                                           sz - history[ANCHOR_DISPLACEMENT + 2])
+
+
 @numba.njit(cache=True)
 def hmd_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
               normal_velocity, tangential_increment, tangential_velocity, history):
@@ -104,12 +135,14 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
     # the contact area.
     stiffness = constants[HERTZ_MODULUS] * math.sqrt(effective_radius)
     fn = stiffness * normal_overlap ** 1.5
-    dfn = fn - stiffness * max(normal_overlap - normal_overlap_increment, 0.0) ** 1.5
+    fn_old = stiffness * max(normal_overlap - normal_overlap_increment, 0.0) ** 1.5
+    dfn = fn - fn_old
     # 8 G* a at the middle of the step: with the end-of-step radius the update is only
     # first order in dt (measured against minidem.reference); see also _hmd_theta
     mid_overlap = max(normal_overlap - 0.5 * normal_overlap_increment, 0.0)
     stick_stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius * mid_overlap)
     limit = mu * max(normal_force, 0.0)
+    reading = int(constants[SPECIAL_CASE])
 
     ddx, ddy, ddz = tangential_increment[0], tangential_increment[1], tangential_increment[2]
     ax, ay, az = history[AXIS], history[AXIS + 1], history[AXIS + 2]
@@ -123,6 +156,35 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
     ftx, fty, ftz = history[FT], history[FT + 1], history[FT + 2]
     force_along = ftx * ax + fty * ay + ftz * az  # Ft in the paper's 1-D sense
     cross_x, cross_y, cross_z = ftx - force_along * ax, fty - force_along * ay, ftz - force_along * az
+
+    # eq 19: a tangential increment too small for the normal one causes no slip
+    eq19 = dfn > 0.0 and stick_stiffness * abs(along) < mu * dfn
+    special = False
+    if reading == SPECIAL_STEP:
+        special = eq19
+    elif reading == SPECIAL_DEFICIT:
+        # the displacement still owed before the force is back on the loading curve of
+        # the current Fn: grows by mu dFn / 8 G* a - |dd| while Fn grows, shrinks by
+        # mu |dFn| / 8 G* a while it falls (geoLAMMPS' HMD pair style)
+        deficit = history[DEFICIT] + (mu * dfn / stick_stiffness if stick_stiffness > 0.0 else 0.0)
+        if dfn > 0.0:
+            deficit -= abs(along)
+        special = deficit > 0.0
+        history[DEFICIT] = max(deficit, 0.0)
+    else:
+        special = history[SPECIAL] != 0.0 or eq19
+        if reading == SPECIAL_COMPRESSION and dfn <= 0.0:
+            special = False
+        if eq19 and history[SPECIAL] == 0.0:
+            # the state at the start of the step, where the special state begins
+            history[ANCHOR_DISPLACEMENT] = history[DISPLACEMENT]
+            history[ANCHOR_DISPLACEMENT + 1] = history[DISPLACEMENT + 1]
+            history[ANCHOR_DISPLACEMENT + 2] = history[DISPLACEMENT + 2]
+            history[ANCHOR_FORCE], history[ANCHOR_FORCE + 1], history[ANCHOR_FORCE + 2] = ftx, fty, ftz
+            history[ANCHOR_NORMAL] = fn_old
+    history[DISPLACEMENT] += ddx
+    history[DISPLACEMENT + 1] += ddy
+    history[DISPLACEMENT + 2] += ddz
 
     mode = history[MODE]
     # load-reversal points at the start of the step; eq 23 moves them by mu dFn over it
@@ -154,7 +216,7 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
         cross_x, cross_y, cross_z = 0.0, 0.0, 0.0
     else:
         branch_sign = -1.0 if mode == UNLOADING else 1.0
-        if dfn > 0.0 and stick_stiffness * abs(along) < mu * dfn:
+        if special:
             theta = 1.0  # eqs 19 and 24: increments below mu dFn cause no slip
         else:
             # eq 21 integrated by the midpoint rule: theta from a half-step predictor
@@ -198,6 +260,14 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
         mode = LOADING
         ft_star = magnitude
         ft_2star = -magnitude
+        special = False  # on the Coulomb limit the force is on every curve
+        history[DEFICIT] = 0.0
+    elif special and not eq19 and reading in (SPECIAL_TOTAL, SPECIAL_FORCE, SPECIAL_DISPLACEMENT):
+        # the end condition is tested only once eq 19 has stopped holding (as the
+        # reference solver's event does), so the anchor stays where the state began
+        end_stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius * normal_overlap)
+        special = _special_margin(reading, history, ftx, fty, ftz, fn, end_stiffness, mu) > 0.0
+    history[SPECIAL] = 1.0 if special else 0.0
     history[FT], history[FT + 1], history[FT + 2] = ftx, fty, ftz
     history[AXIS], history[AXIS + 1], history[AXIS + 2] = ax, ay, az
     history[FT_STAR], history[FT_2STAR] = ft_star, ft_2star
@@ -283,6 +353,17 @@ def lth_force(constants, effective_radius, effective_mass, normal_overlap, norma
     return normal_force, magnitude * sx / displacement, magnitude * sy / displacement, magnitude * sz / displacement
 
 
+@dataclasses.dataclass(frozen=True)
+class _Choice(Parameter):
+    """A parameter that selects one of the integers low..high."""
+
+    def check(self, value):
+        why = super().check(value)
+        if why is None and float(value) != int(value):
+            return f"must be one of the integers {self.low:g}..{self.high:g}, got {value!r}"
+        return why
+
+
 def _law(name, description, force, history, reference, aliases=(), extra=()):
     return ContactLaw(
         name=name,
@@ -310,12 +391,24 @@ HMD = _law(
         HistorySlot("ft_2star", "load-reversal point Ft** along the axis (N)"),
         HistorySlot("mode", "0 virgin, 1 loading, 2 unloading, 3 reloading"),
         HistorySlot("sliding", "1 while the force is on the Coulomb limit"),
+        HistorySlot("tangential_displacement", "total tangential displacement (m)", vector=True),
+        HistorySlot("special", "1 while theta = 1 under eqs 19/24 (special_case 1-3)"),
+        HistorySlot("special_start_displacement", "total displacement where the special state began (m)",
+                    vector=True),
+        HistorySlot("special_start_force", "tangential force where the special state began (N)", vector=True),
+        HistorySlot("special_start_normal_force", "elastic normal force where the special state began (N)"),
+        HistorySlot("special_deficit", "displacement owed before the loading curve is met (m; special_case 4)"),
     ),
     "Thornton, Cummins & Cleary (2011) section 3.1; Thornton & Yin (1991)",
     aliases=("hertz_mindlin_deresiewicz",),
     extra=(Parameter("reversal_check", 1.0, "-", "1: while sliding, reverse to unloading only when "
                      "the elastic trial force is inside the Coulomb cone; 0: reverse the instant "
-                     "the displacement does (see docs/laws.md)", low=0.0, high=1.0),),
+                     "the displacement does (see docs/laws.md)", low=0.0, high=1.0),
+           _Choice("special_case", 0.0, "-", "reading of eq 24, when the theta = 1 state entered "
+                   "under eq 19 ends: 0 per step (eq 19 negated), 1 8 G* a |delta_t| > mu Fn, "
+                   "2 |Ft - Ft0| > mu (Fn - Fn0), 3 8 G* a |delta_t - delta_t0| > mu (Fn - Fn0), "
+                   "4 accumulated displacement deficit, 5 when Fn stops growing (see docs/laws.md)", low=0.0,
+                   high=5.0)),
 )
 HM = _law("hm", "Hertz + Mindlin no-slip, incremental Ft += 8 G* a dd (eq 39)", hm_force, _FORCE_SLOT,
           "Thornton, Cummins & Cleary (2011) section 3.3", aliases=("hertz_mindlin",))
