@@ -75,8 +75,8 @@ PLANE, CYLINDER, TRIANGLE, PARTICLE = 0, 1, 2, 3
 FIRST_CONTACT_TIME, LAST_SEPARATION_TIME, MAX_OVERLAP, PEAK_NORMAL_FORCE, PEAK_TANGENTIAL_FORCE = range(5)
 # probe slots: the contact of particle 0 with the probed wall, for per-step traces
 PROBE_OVERLAP, PROBE_FN, PROBE_FT, PROBE_DISPLACEMENT = 0, 1, 2, 5  # FT and DISPLACEMENT are 3-vectors
-# mesh contacts this close (relative to the radius) are the same edge or vertex seen
-# from two triangles
+# a mesh contact point this close (relative to the radius) to another contact's tangent
+# plane lies on the same surface (round-off of a flat mesh)
 _SAME_POINT = 1e-9
 
 
@@ -246,18 +246,28 @@ def mesh_contact_geometry(i, position, radius, triangles, t):
 
 
 @numba.njit(cache=True, inline="always")
-def mesh_entry_overlap(i, position, radius, triangles, candidates, start, k, touches_face, tolerance):
+def mesh_entry_overlap(i, position, radius, triangles, candidates, start, stop, k, touches_face, tolerance):
     """(overlap, normal) of sphere i with candidate entry k, after the rule of one contact
-    per feature region (see mesh_forces); -1 for a contact another entry carries."""
+    per feature region (see mesh_forces); -1 for a contact another entry carries.
+
+    An edge or vertex contact is shadowed by a deeper edge or vertex contact (or, at
+    equal depth, an earlier one) when its point is not above that contact's tangent
+    plane: on a flat or convex part of the mesh it is then no local minimum of the
+    distance, only the same surface seen from another triangle. In a concave corner the
+    point is above the plane and both contacts count.
+    """
     overlap, nx, ny, nz, cx, cy, cz, feature = mesh_contact_geometry(i, position, radius, triangles, candidates[k])
     if overlap > 0.0 and feature != FACE:
         if touches_face:
             overlap = -1.0
         else:
-            for earlier in range(start, k):
+            for other in range(start, stop):
+                if other == k:
+                    continue
                 o2, n2x, n2y, n2z, c2x, c2y, c2z, f2 = mesh_contact_geometry(
-                    i, position, radius, triangles, candidates[earlier])
-                if o2 > 0.0 and f2 != FACE and (c2x - cx) ** 2 + (c2y - cy) ** 2 + (c2z - cz) ** 2 <= tolerance:
+                    i, position, radius, triangles, candidates[other])
+                if f2 != FACE and (o2 > overlap or (o2 == overlap and other < k)) \
+                        and (cx - c2x) * n2x + (cy - c2y) * n2y + (cz - c2z) * n2z <= tolerance:
                     overlap = -1.0
                     break
     return overlap, nx, ny, nz
@@ -288,7 +298,7 @@ def mesh_forces(i, position, velocity, angular_velocity, mass, radius, material,
         if overlap > 0.0 and feature == FACE:
             touches_face = True
             break
-    tolerance = (_SAME_POINT * radius[i]) ** 2
+    tolerance = _SAME_POINT * radius[i]
     ending = 0  # contacts of the last step that end in this one, history not yet dropped
     for sweep in range(2):
         # sweep 0: the entries touching at the last step; sweep 1: the others
@@ -297,7 +307,7 @@ def mesh_forces(i, position, velocity, angular_velocity, mass, radius, material,
             if (previous > 0.0) != (sweep == 0):
                 continue
             t = candidates[k]
-            overlap, nx, ny, nz = mesh_entry_overlap(i, position, radius, triangles, candidates, start, k,
+            overlap, nx, ny, nz = mesh_entry_overlap(i, position, radius, triangles, candidates, start, stop, k,
                                                      touches_face, tolerance)
             if sweep == 0 and overlap <= 0.0:
                 ending += 1  # left as it is (previous > 0 marks it) until the row is done
@@ -306,7 +316,7 @@ def mesh_forces(i, position, velocity, angular_velocity, mass, radius, material,
                 # a new contact while another ends: the same contact moving on
                 for e in range(start, stop):
                     if mesh_overlap[e] > 0.0 and mesh_entry_overlap(i, position, radius, triangles, candidates,
-                                                                    start, e, touches_face, tolerance)[0] <= 0.0:
+                                                                    start, stop, e, touches_face, tolerance)[0] <= 0.0:
                         history[k, :] = history[e, :]
                         previous = mesh_overlap[e]
                         mesh_overlap[e] = 0.0  # handed over: it ends without a separation
@@ -334,8 +344,8 @@ def mesh_forces(i, position, velocity, angular_velocity, mass, radius, material,
         # the contacts that ended without a successor: their history is dropped
         for k in range(start, stop):
             if mesh_overlap[k] > 0.0:
-                overlap = mesh_entry_overlap(i, position, radius, triangles, candidates, start, k, touches_face,
-                                             tolerance)[0]
+                overlap = mesh_entry_overlap(i, position, radius, triangles, candidates, start, stop, k,
+                                             touches_face, tolerance)[0]
                 if overlap <= 0.0:
                     if TRACK:
                         note_transitions(stats, time, dt, overlap, mesh_overlap[k])
