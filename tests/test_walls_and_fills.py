@@ -457,3 +457,19 @@ def test_column_collapse_runs_out_as_experiments_say():
     assert energy[held].sum() < 1e-3 * released
     assert np.all(position[:, 2] > 0.95 * radius) and np.all(position[:, 0] > 0.95 * radius)
     assert np.all((position[:, 1] > 0.95 * radius) & (position[:, 1] < 0.0066 - 0.95 * radius))
+
+
+def test_stop_at_separation_runs_the_serial_tracked_loops():
+    # Only the serial loops interpolate the separation instant within the step (and so
+    # stop and time a collision as a single impact does); a scene stopping at separation
+    # runs them whatever its size, one running to a time runs parallel above 16 spheres.
+    # (Construction only: nothing is compiled.)
+    spheres = [(np.array([0.1 * k - 1.0, 0.0, 0.5]), np.array([0.0, 0.0, -1.0])) for k in range(20)]
+    data = {"materials": {"glass": GLASS}, "contact": {"law": "hm", "friction": 0.3},
+            "walls": [{"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0], "material": "glass"}],
+            "particles": [{"position": p.tolist(), "velocity": v.tolist(), "radius": RADIUS, "material": "glass"}
+                          for p, v in spheres],
+            "run": {"stop": "separation"}, "output": {"vtk": False}}
+    assert not simulation.Simulation(scenario.build_scene(copy.deepcopy(data))).parallel
+    data["run"] = {"stop": "time", "end_time": 0.1}
+    assert simulation.Simulation(scenario.build_scene(data)).parallel
