@@ -715,8 +715,9 @@ def _check_geometry(scene: Scene, max_reported: int = 5) -> None:
     t = 0: the first step would release the stored elastic energy as a blast."""
     errors = _Errors(scene.source)
     for w in range(scene.wall_point.shape[0]):
-        # (w counts planes: a box contributes several, a cylinder's bottom one)
-        plane = (f"plane {w} (through {scene.wall_point[w].tolist()} with normal "
+        # (w counts planes: a box contributes several, a cylinder's bottom one; so the
+        # plane is named by its geometry, not by a [[walls]] index)
+        plane = (f"wall {w} (the plane through {scene.wall_point[w].tolist()} with normal "
                  f"{scene.wall_normal[w].tolist()})")
         overlap = scene.radius - (scene.position - scene.wall_point[w]) @ scene.wall_normal[w]
         for i in np.flatnonzero(overlap >= scene.radius):
