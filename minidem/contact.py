@@ -98,8 +98,8 @@ def cylinder_overlap(px, py, pz, radius, base, axis, cylinder_radius, length, c)
     rx, ry, rz = rx - s * axis[c, 0], ry - s * axis[c, 1], rz - s * axis[c, 2]
     rho = math.sqrt(rx * rx + ry * ry + rz * rz)
     if rho == 0.0:
-        return radius - cylinder_radius, 0.0, 0.0, 1.0
-    return radius + rho - cylinder_radius, -rx / rho, -ry / rho, -rz / rho
+        return radius - cylinder_radius[c], 0.0, 0.0, 1.0
+    return radius + rho - cylinder_radius[c], -rx / rho, -ry / rho, -rz / rho
 
 
 # feature of a triangle that holds the closest point

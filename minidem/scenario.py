@@ -131,8 +131,9 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
             low=0.0, low_open=True),
         Key("steps_per_contact", "int", 4000, "-", "steps per normal-impact duration when dt = \"auto\"",
             low=20),
-        Key("stop", "choice", "separation", "", "\"separation\": stop when the last contact ends; "
-            "\"time\": run to end_time", choices=("separation", "time")),
+        Key("stop", "choice", "separation", "", "\"separation\": stop when the last contact ends (the "
+            "particle loops then run serial, which records the separation instant within the step); "
+            "\"time\": run to end_time (more than 16 particles: parallel loops)", choices=("separation", "time")),
         Key("end_time", "float", None, "s", "simulated time to run (required for stop = \"time\"; "
             "a safety limit otherwise, default 100 contact times)", low=0.0, low_open=True),
         Key("gravity", "vec3", (0.0, 0.0, 0.0), "m/s^2", "gravitational acceleration"),
@@ -232,6 +233,7 @@ class Scene:
     vtk_contacts: bool = False
     checkpoint_interval: float | None = None
     checkpoint_wall_interval: float | None = None
+    fill_ranges: list = dataclasses.field(default_factory=list)  # (first, stop) particle index per [[fill]]
 
     @property
     def n_particles(self) -> int:
@@ -478,7 +480,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         kind = values.get("type")
         if kind in ("box", "cylinder", "mesh"):
             _shaped_wall(kind, values, where, source, errors, material_of, wall_point, wall_normal,
-                         wall_material, cylinders, meshes)
+                         wall_material, cylinders, meshes, index)
             continue
         normal = values.get("normal")
         if normal is None and kind == "plane":
@@ -533,9 +535,12 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
     if not isinstance(fills, list):
         errors.add("fill", "expected an array of tables: [[fill]]")
         fills = []
+    fill_ranges = []
     for index, table in enumerate(fills):
+        first = len(radius)
         _fill(table, f"fill[{index}]", source, errors, material_of, position, velocity, spin, radius,
               particle_material)
+        fill_ranges.append((first, len(radius)))
     if not radius and not errors.messages:
         errors.add("", "the scene has no particles: add an [impact] block, [[particles]] or [[fill]]")
 
@@ -576,6 +581,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         vtk_contacts=output["contacts"],
         checkpoint_interval=output["checkpoint_interval"],
         checkpoint_wall_interval=output["checkpoint_wall_interval"],
+        fill_ranges=fill_ranges,
     )
     wall_set.plane_point, wall_set.plane_normal = scene.wall_point, scene.wall_normal
     wall_set.plane_material = scene.wall_material
@@ -585,10 +591,13 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         wall_set.cylinder_radius = np.array([c[2] for c in cylinders])
         wall_set.cylinder_length = np.array([c[3] for c in cylinders])
         wall_set.cylinder_material = np.array([c[4] for c in cylinders], dtype=np.int64)
+        wall_set.cylinder_table = np.array([c[5] for c in cylinders], dtype=np.int64)
     if meshes:
-        wall_set.triangles = np.concatenate([v[f] for v, f, _ in meshes])
-        wall_set.triangle_material = np.concatenate([np.full(len(f), m, dtype=np.int64) for v, f, m in meshes])
-        wall_set.meshes = [(v, f) for v, f, _ in meshes]
+        wall_set.triangles = np.concatenate([v[f] for v, f, *_ in meshes])
+        wall_set.triangle_material = np.concatenate([np.full(len(f), m, dtype=np.int64) for v, f, m, *_ in meshes])
+        wall_set.triangle_table = np.concatenate([np.full(len(f), k, dtype=np.int64) for v, f, m, k, _ in meshes])
+        wall_set.mesh_files = {k: name for v, f, m, k, name in meshes}
+        wall_set.meshes = [(v, f) for v, f, *_ in meshes]
     scene.walls = wall_set
     _check_geometry(scene)
     return scene
@@ -602,7 +611,7 @@ def _required(values, keys, kind, where, errors) -> bool:
 
 
 def _shaped_wall(kind, values, where, source, errors, material_of, wall_point, wall_normal, wall_material,
-                 cylinders, meshes) -> None:
+                 cylinders, meshes, index) -> None:
     """Box, cylinder and mesh walls (see minidem/walls.py); planes are handled inline."""
     from minidem import walls as wall_shapes
 
@@ -624,7 +633,7 @@ def _shaped_wall(kind, values, where, source, errors, material_of, wall_point, w
                 errors.add(f"{where}.axis", "must not be the zero vector")
                 return
             axis = axis / np.linalg.norm(axis)
-            cylinders.append((values["point"], axis, values["radius"], values["length"], material))
+            cylinders.append((values["point"], axis, values["radius"], values["length"], material, index))
             if values["bottom"]:
                 wall_point.append(values["point"])
                 wall_normal.append(axis)
@@ -639,7 +648,7 @@ def _shaped_wall(kind, values, where, source, errors, material_of, wall_point, w
             except ValueError as exc:
                 errors.add(f"{where}.file", str(exc))
                 return
-            meshes.append((vertices, faces, material))
+            meshes.append((vertices, faces, material, index, str(path)))
 
 
 def _fill(table, where, source, errors, material_of, position, velocity, spin, radius, particle_material) -> None:
@@ -702,6 +711,9 @@ def _tangent(normal: np.ndarray, given, errors: _Errors):
 
 def _particle_name(scene: Scene, index: int) -> str:
     """The scenario table a particle came from (the [impact] sphere is particle 0)."""
+    for k, (first, stop) in enumerate(scene.fill_ranges):
+        if first <= index < stop:
+            return f"fill[{k}] (particle {index}, sphere {index - first} of the fill)"
     if scene.impact is not None:
         return "impact" if index == 0 else f"particles[{index - 1}]"
     return f"particles[{index}]"
@@ -716,7 +728,9 @@ def _check_geometry(scene: Scene, max_reported: int = 5) -> None:
     t = 0: the first step would release the stored elastic energy as a blast."""
     errors = _Errors(scene.source)
     for w in range(scene.wall_point.shape[0]):
-        plane = (f"wall {w} (walls[{w}]: the plane through {scene.wall_point[w].tolist()} with normal "
+        # (w counts planes: a box contributes several, a cylinder's bottom one; so the
+        # plane is named by its geometry, not by a [[walls]] index)
+        plane = (f"wall {w} (the plane through {scene.wall_point[w].tolist()} with normal "
                  f"{scene.wall_normal[w].tolist()})")
         overlap = scene.radius - (scene.position - scene.wall_point[w]) @ scene.wall_normal[w]
         for i in np.flatnonzero(overlap >= scene.radius):
@@ -725,6 +739,19 @@ def _check_geometry(scene: Scene, max_reported: int = 5) -> None:
         for i in np.flatnonzero((overlap > _TOUCH_TOLERANCE * scene.radius) & (overlap < scene.radius)):
             errors.add(_particle_name(scene, i), f"overlaps {plane} by {overlap[i]:.3g} m at t = 0; move it "
                        f"at least that far along the normal")
+    if scene.walls is not None:
+        # cylinders and meshes as planes: every contact, whatever the wall, starts at first
+        # touch during the run, with zero history (docs/multi-particle.md)
+        from minidem.walls import initial_wall_overlaps
+
+        reported = 0
+        found = initial_wall_overlaps(scene.walls, scene.position, scene.radius, _TOUCH_TOLERANCE)
+        for i, wall, overlap, behind in found[:max_reported]:
+            errors.add(_particle_name(scene, i), f"centre is on or outside {wall}; place it inside" if behind else
+                       f"overlaps {wall} by {overlap:.3g} m at t = 0; move it at least that far away from the wall")
+            reported += 1
+        if len(found) > reported:
+            errors.add("", f"... and {len(found) - reported} more particle-wall overlaps")
     if scene.n_particles > 1:
         from minidem.neighbours import build_pairs
 

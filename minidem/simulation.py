@@ -31,6 +31,9 @@ _BLOCK_END = "# <<< specialisation block"
 _ENGINE_SOURCES = ("kernel.py", "contact.py", "integrate.py")
 # Scenes with more particles than this run their particle loops in parallel; smaller
 # ones run serial and record contact statistics (first touch, separation, peaks).
+# A scene with run.stop = "separation" always runs serial: its stop and its contact
+# duration need the separation instant, interpolated within the step, which only the
+# serial loop can record without a race between threads.
 PARALLEL_ABOVE = 16
 # scene-shape flags of the kernel specialisation block, in order
 KERNEL_FLAGS = ("SPIN", "PAIRS", "CYLINDERS", "MESHES", "PARALLEL")
@@ -249,7 +252,7 @@ class Simulation:
         self.law = self.entry.law
         self.spin = self.law.is_frictional(scene.law_parameters)
         self.pairs = scene.n_particles > 1
-        self.parallel = scene.n_particles > PARALLEL_ABOVE
+        self.parallel = scene.n_particles > PARALLEL_ABOVE and scene.stop != "separation"
         self.skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
         self._prepare_constants()
         self.dt, self.dt_reason = self._choose_time_step()

@@ -19,6 +19,7 @@ Kinds (``type``):
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +40,11 @@ class WallSet:
     triangles: np.ndarray  # (T, 3, 3): vertex k of triangle t is triangles[t, k]
     triangle_material: np.ndarray  # (T,) int64
     meshes: list  # (vertices, faces) per mesh wall, for display
+    # where each cylinder / triangle came from, for messages: the index of its [[walls]]
+    # table and, for meshes, the file
+    cylinder_table: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    triangle_table: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    mesh_files: dict = dataclasses.field(default_factory=dict)  # [[walls]] index -> file path
 
     @classmethod
     def empty(cls) -> "WallSet":
@@ -67,10 +73,13 @@ def read_mesh(path: str | Path, scale: float = 1.0, offset=(0.0, 0.0, 0.0)) -> t
     meshio cannot read or one without surface cells."""
     import meshio
 
+    if not Path(path).is_file():
+        raise ValueError(f"no such mesh file '{path}'")
     try:
-        mesh = meshio.read(str(path))
-    except FileNotFoundError:
-        raise ValueError(f"no such mesh file '{path}'") from None
+        with warnings.catch_warnings():
+            # meshio first tries an ASCII STL as binary, overflowing a header count
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mesh = meshio.read(str(path))
     except Exception as exc:  # noqa: BLE001 - meshio raises many types for bad files
         raise ValueError(f"cannot read mesh '{path}': {exc}") from None
     faces = []
@@ -125,3 +134,41 @@ def display_meshes(walls: WallSet, extent_lower, extent_upper) -> list[tuple[np.
                                     walls.cylinder_length[c]))
     out.extend(walls.meshes)
     return out
+
+
+def initial_wall_overlaps(walls: WallSet, position: np.ndarray, radius: np.ndarray,
+                          tolerance: float) -> list[tuple[int, str, float, bool]]:
+    """Particles that overlap a cylinder or a mesh triangle by more than ``tolerance``
+    times their radius: (particle, description of the wall, overlap m, centre behind it).
+
+    The overlaps are those the kernel computes (``minidem.contact.cylinder_overlap``,
+    ``triangle_closest_point``); planes are checked by ``minidem.scenario`` itself.
+    """
+    from minidem.contact import cylinder_overlap, triangle_closest_point
+    from minidem.neighbours import mesh_candidates
+
+    found = []
+    for c in range(walls.cylinder_base.shape[0]):
+        where = (f"walls[{int(walls.cylinder_table[c])}]" if c < len(walls.cylinder_table) else f"cylinder {c}")
+        text = (f"{where} (the cylinder of radius {walls.cylinder_radius[c]:g} m from "
+                f"{walls.cylinder_base[c].tolist()} along {walls.cylinder_axis[c].tolist()})")
+        for i in range(position.shape[0]):
+            overlap = cylinder_overlap(position[i, 0], position[i, 1], position[i, 2], radius[i], walls.cylinder_base,
+                                       walls.cylinder_axis, walls.cylinder_radius, walls.cylinder_length, c)[0]
+            if overlap > tolerance * radius[i]:
+                found.append((i, text, float(overlap), bool(overlap >= radius[i])))
+    if walls.triangles.shape[0] and position.shape[0]:
+        # a zero skin lists exactly the triangles closer than the radius
+        offsets, candidates = mesh_candidates(position, radius, 0.0, walls.triangles)
+        for i in range(position.shape[0]):
+            for t in candidates[offsets[i]:offsets[i + 1]]:
+                cx, cy, cz, _ = triangle_closest_point(position[i, 0], position[i, 1], position[i, 2],
+                                                        walls.triangles, t)
+                overlap = float(radius[i] - np.linalg.norm(position[i] - (cx, cy, cz)))
+                if overlap > tolerance * radius[i]:
+                    table = int(walls.triangle_table[t]) if t < len(walls.triangle_table) else -1
+                    name = walls.mesh_files.get(table, "")
+                    text = (f"triangle {int(t)} of the mesh walls[{table}]" + (f" ('{name}')" if name else "")
+                            if table >= 0 else f"mesh triangle {int(t)}")
+                    found.append((i, text, overlap, False))
+    return found

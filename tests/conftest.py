@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -64,3 +65,13 @@ def run_cli(*args, cwd=None, env=None, timeout=300) -> subprocess.CompletedProce
 @pytest.fixture
 def cli():
     return run_cli
+
+
+def contact_count(state):
+    """Contacts per particle (pairs and plane walls) in a :class:`minidem.simulation.State`."""
+    offsets, partners, _, overlap = state.pairs[:4]
+    first = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+    touching = overlap > 0
+    n = len(offsets) - 1
+    return (np.bincount(first[touching], minlength=n) + np.bincount(partners[touching], minlength=n)
+            + np.count_nonzero(state.planes[4] > 0, axis=1))
