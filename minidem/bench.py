@@ -12,8 +12,8 @@ leaving the rest of the file alone) and PNG figures in ``docs/figures/``:
 - ``sweep-timing``: the whole paper sweep (6 laws x 30 angles) in a fresh process, cold
   (empty MINIDEM_CACHE_DIR and NUMBA_CACHE_DIR: compilation included) and warm.
 
-The multi-particle throughput section of the same file is written by another part of the
-bench (not in this module yet).
+The ``multi-particle`` section (the settle scene beside LIGGGHTS) is measured by
+``minidem.bench_multi``; it runs only when asked for (``--only multi-particle``).
 """
 
 from __future__ import annotations
@@ -373,6 +373,11 @@ def run(quick: bool = False, docs: Path = DOCS, sections=("single-impact", "work
         figure = Path("figures") / "work_precision.png"
         plot_work_precision(wp, docs / figure, stamp(command))
         texts["work-precision"] = section_work_precision(wp, settings["wp_angles"], figure, command)
+    if "multi-particle" in sections:
+        from minidem import bench_multi
+
+        echo("bench: multi-particle throughput (settle scene, minidem and LIGGGHTS interleaved)")
+        texts["multi-particle"] = bench_multi.run(1 if quick else 3, command, stamp, echo)
     if "sweep-timing" in sections:
         echo("bench: paper sweep, cold and warm (fresh processes)")
         timing = sweep_timing(settings["cold_repeats"], settings["warm_repeats"])

@@ -32,37 +32,24 @@ def plane_overlap(px, py, pz, radius, wall_point, wall_normal, wall):
 
 
 @numba.njit(cache=True, inline="always")
-def relative_contact_velocity(vx, vy, vz, wx, wy, wz, lever_arm, nx, ny, nz):
-    """Velocity of the contact point of a sphere whose centre is lever_arm away along +n.
-
-    The contact point sits at -lever_arm n from the centre, so its velocity is
-    v + w x (-lever_arm n). Returns (approach rate along -n, tangential velocity).
-    """
-    rx, ry, rz = cross(wx, wy, wz, -lever_arm * nx, -lever_arm * ny, -lever_arm * nz)
-    cx, cy, cz = vx + rx, vy + ry, vz + rz
-    along = cx * nx + cy * ny + cz * nz
-    return -along, (cx - along * nx, cy - along * ny, cz - along * nz)
-
-
-@numba.njit(cache=True, inline="always")
-def rotate_history_into_plane(history, vector_offsets, nx, ny, nz):
-    """Carry vector history into the current tangent plane as the contact rotates.
+def rotate_slot_into_plane(history, o, nx, ny, nz):
+    """Carry the vector history slot history[o:o+3] into the current tangent plane as
+    the contact rotates.
 
     The normal component is removed and the magnitude restored, so a rotating contact
     neither loses nor gains stored force (the LAMMPS/LIGGGHTS convention; see design
     notes on LAMMPS #3022).
     """
-    for k in range(vector_offsets.shape[0]):
-        o = vector_offsets[k]
-        hx, hy, hz = history[o], history[o + 1], history[o + 2]
-        before = math.sqrt(hx * hx + hy * hy + hz * hz)
-        if before == 0.0:
-            continue
-        along = hx * nx + hy * ny + hz * nz
-        hx, hy, hz = hx - along * nx, hy - along * ny, hz - along * nz
-        after = math.sqrt(hx * hx + hy * hy + hz * hz)
-        scale = before / after if after > 0.0 else 0.0
-        history[o], history[o + 1], history[o + 2] = hx * scale, hy * scale, hz * scale
+    hx, hy, hz = history[o], history[o + 1], history[o + 2]
+    before = hx * hx + hy * hy + hz * hz
+    if before == 0.0:
+        return
+    along = hx * nx + hy * ny + hz * nz
+    hx, hy, hz = hx - along * nx, hy - along * ny, hz - along * nz
+    after = hx * hx + hy * hy + hz * hz
+    # |h_before| / |h_after| with one square root (this runs for every contact, every step)
+    scale = math.sqrt(before / after) if after > 0.0 else 0.0
+    history[o], history[o + 1], history[o + 2] = hx * scale, hy * scale, hz * scale
 
 
 @numba.njit(cache=True, inline="always")
@@ -73,7 +60,9 @@ def pair_contact_velocity(vix, viy, viz, wix, wiy, wiz, vjx, vjy, vjz, wjx, wjy,
     i's contact point is at -lever_i n from its centre, j's at +lever_j n from its own;
     with lever_i + lever_j equal to the centre distance both are the same point, so the
     contact torques balance the moment of the contact force about the pair and angular
-    momentum is conserved. Returns (approach rate along -n, tangential velocity).
+    momentum is conserved. A fixed wall is the partner with v_j = w_j = 0 (then lever_i
+    is the sphere's lever arm and lever_j does not matter). Returns (approach rate along
+    -n, tangential velocity).
     """
     ax, ay, az = cross(wix, wiy, wiz, -lever_i * nx, -lever_i * ny, -lever_i * nz)
     bx, by, bz = cross(wjx, wjy, wjz, lever_j * nx, lever_j * ny, lever_j * nz)
@@ -107,6 +96,13 @@ FACE, EDGE, VERTEX = 0, 1, 2
 
 
 @numba.njit(cache=True, inline="always")
+def _edge_projections(px, py, pz, tri, t, vertex, abx, aby, abz, acx, acy, acz):
+    """(AB . (p - V), AC . (p - V)) for vertex V of triangle t."""
+    vx, vy, vz = px - tri[t, vertex, 0], py - tri[t, vertex, 1], pz - tri[t, vertex, 2]
+    return abx * vx + aby * vy + abz * vz, acx * vx + acy * vy + acz * vz
+
+
+@numba.njit(cache=True, inline="always")
 def triangle_closest_point(px, py, pz, tri, t):
     """Closest point of triangle ``tri[t]`` (3 vertices x 3) to p and the feature it lies
     on (FACE interior, an EDGE or a VERTEX): Ericson, Real-Time Collision Detection,
@@ -114,23 +110,17 @@ def triangle_closest_point(px, py, pz, tri, t):
     ax, ay, az = tri[t, 0, 0], tri[t, 0, 1], tri[t, 0, 2]
     abx, aby, abz = tri[t, 1, 0] - ax, tri[t, 1, 1] - ay, tri[t, 1, 2] - az
     acx, acy, acz = tri[t, 2, 0] - ax, tri[t, 2, 1] - ay, tri[t, 2, 2] - az
-    apx, apy, apz = px - ax, py - ay, pz - az
-    d1 = abx * apx + aby * apy + abz * apz
-    d2 = acx * apx + acy * apy + acz * apz
+    d1, d2 = _edge_projections(px, py, pz, tri, t, 0, abx, aby, abz, acx, acy, acz)
     if d1 <= 0.0 and d2 <= 0.0:
         return ax, ay, az, VERTEX
-    bpx, bpy, bpz = px - tri[t, 1, 0], py - tri[t, 1, 1], pz - tri[t, 1, 2]
-    d3 = abx * bpx + aby * bpy + abz * bpz
-    d4 = acx * bpx + acy * bpy + acz * bpz
+    d3, d4 = _edge_projections(px, py, pz, tri, t, 1, abx, aby, abz, acx, acy, acz)
     if d3 >= 0.0 and d4 <= d3:
         return tri[t, 1, 0], tri[t, 1, 1], tri[t, 1, 2], VERTEX
     vc = d1 * d4 - d3 * d2
     if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
         v = d1 / (d1 - d3)
         return ax + v * abx, ay + v * aby, az + v * abz, EDGE
-    cpx, cpy, cpz = px - tri[t, 2, 0], py - tri[t, 2, 1], pz - tri[t, 2, 2]
-    d5 = abx * cpx + aby * cpy + abz * cpz
-    d6 = acx * cpx + acy * cpy + acz * cpz
+    d5, d6 = _edge_projections(px, py, pz, tri, t, 2, abx, aby, abz, acx, acy, acz)
     if d6 >= 0.0 and d5 <= d6:
         return tri[t, 2, 0], tri[t, 2, 1], tri[t, 2, 2], VERTEX
     vb = d5 * d2 - d1 * d6

@@ -15,15 +15,18 @@ removed by the compiler, so a single impact pays nothing for pairs or meshes):
     PARALLEL   particle loops run with prange; small scenes run serial and TRACK
                contact statistics (first touch, separation, peaks) and the probe
 
-One step (velocity Verlet) is three particle loops:
+One step (velocity Verlet) is two parallel particle passes:
 
-    kick_drift      v += F dt/2m, x += v dt; counts particles that moved more than
-                    half the skin since the last neighbour-list build
-    compute_forces  particle i owns its walls and the pairs (i, j > i) of its CSR
-                    row: it computes them, writes its own force, and stores each pair's
-                    force and torque direction for j
-    finish          particle p adds the reactions of the pairs (i < p, p) in
-                    ascending i (the reverse index), then v += F dt/2m
+    compute_forces      particle i owns its walls and the pairs (i, j > i) of its row of
+                        the Verlet half list: it computes them through the one contact
+                        evaluation (``evaluate_contact``), writes its own force, and
+                        stores each pair's force and j's torque in j's row of the
+                        transposed list (zeros while the pair is apart)
+    finish_kick_drift   particle p adds the reactions of its pairs (i < p, p) in
+                        ascending i (its transposed row), v += F dt/2m; then, unless the
+                        step ends a chunk, the next step's v += F dt/2m, x += v dt and
+                        the count of particles that moved more than half the skin since
+                        the last neighbour-list build
 
 Every sum is taken in an order fixed by the neighbour list, never by the thread
 schedule, so a run is bit-for-bit the same on any number of threads, and no two
@@ -36,16 +39,15 @@ to i, the normal force acts on i along +n, the law's tangential force acts on i 
 import math
 
 import numba
+import numpy as np
 
 from minidem.contact import (
-    EDGE,
     FACE,
     cross,
     cylinder_overlap,
     pair_contact_velocity,
     plane_overlap,
-    relative_contact_velocity,
-    rotate_history_into_plane,
+    rotate_slot_into_plane,
     triangle_closest_point,
 )
 from minidem.integrate import drift, half_kick
@@ -58,6 +60,7 @@ PAIRS = True
 CYLINDERS = True
 MESHES = True
 PARALLEL = False
+VECTOR_OFFSETS = (0,)
 # <<< specialisation block
 
 # contact statistics and the probe are written by whichever particle has the contact:
@@ -66,6 +69,11 @@ TRACK = not PARALLEL
 particle_range = numba.prange if PARALLEL else range
 # the Verlet list (pairs, mesh candidates) must be rebuilt when particles move too far
 CHECK_DISPLACEMENT = PAIRS or MESHES
+# the law keeps vector history (offsets VECTOR_OFFSETS) that must follow a turning contact
+ROTATE_HISTORY = SPIN and len(VECTOR_OFFSETS) > 0
+# fast-math flags of the particle loops: none (every operation as written; the finite
+# checks must see NaN and infinity)
+FAST = False
 
 # status codes (status[0]); status[1], status[2] name the particle and wall/partner
 OK, NON_FINITE_FORCE, TUNNELLED = 0, 1, 2
@@ -75,6 +83,7 @@ PLANE, CYLINDER, TRIANGLE, PARTICLE = 0, 1, 2, 3
 FIRST_CONTACT_TIME, LAST_SEPARATION_TIME, MAX_OVERLAP, PEAK_NORMAL_FORCE, PEAK_TANGENTIAL_FORCE = range(5)
 # probe slots: the contact of particle 0 with the probed wall, for per-step traces
 PROBE_OVERLAP, PROBE_FN, PROBE_FT, PROBE_DISPLACEMENT = 0, 1, 2, 5  # FT and DISPLACEMENT are 3-vectors
+ZERO = (0.0, 0.0, 0.0)
 # a mesh contact point this close (relative to the radius) to another contact's tangent
 # plane lies on the same surface (round-off of a flat mesh)
 _SAME_POINT = 1e-9
@@ -104,154 +113,83 @@ def note_peaks(stats, overlap, fn, ftx, fty, ftz):
     stats[PEAK_TANGENTIAL_FORCE] = max(stats[PEAK_TANGENTIAL_FORCE], math.sqrt(ftx * ftx + fty * fty + ftz * ftz))
 
 
-# The per-particle helpers take plain arrays, unpacked from the argument tuples once
-# per chunk of particles (force_range): unpacking tuples inside the particle loop costs
-# reference-count traffic that made the step ten times slower.
-@numba.njit(cache=True, inline="always")
-def wall_contact(i, velocity, angular_velocity, mass, radius, constants_row, overlap, previous, nx, ny, nz,
-                 history, dt):
-    """The law's force on sphere i from a fixed wall whose normal at the contact is n.
-
-    Lever arm R: the undeformed radius, as in the paper's rigid-body analysis (eqs
-    3-8) and its measure y2 = 2 R w / ((1 + en) Vni).
-    """
-    normal_velocity, tangential_velocity = relative_contact_velocity(
-        velocity[i, 0], velocity[i, 1], velocity[i, 2],
-        angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2],
-        radius[i], nx, ny, nz)
-    increment = (tangential_velocity[0] * dt, tangential_velocity[1] * dt, tangential_velocity[2] * dt)
-    fn, ftx, fty, ftz = law_force(constants_row, radius[i], mass[i], overlap, overlap - max(previous, 0.0),
-                                  normal_velocity, increment, tangential_velocity, history)
-    return fn, ftx, fty, ftz, increment
-
-
 @numba.njit(cache=True, inline="always")
 def finite(fn, ftx, fty, ftz):
     return math.isfinite(fn) and math.isfinite(ftx) and math.isfinite(fty) and math.isfinite(ftz)
 
 
 @numba.njit(cache=True, inline="always")
-def plane_forces(i, position, velocity, angular_velocity, mass, radius, material, pair_row, constants,
-                 wall_point, wall_normal, wall_material, wall_history, wall_overlap,
-                 dt, time, probe_wall, probe, stats, status, acc):
-    """Sphere-plane contacts of particle i, added to acc = (fx, fy, fz, tx, ty, tz, count)."""
-    fx, fy, fz, tx, ty, tz, count = acc
-    px, py, pz = position[i, 0], position[i, 1], position[i, 2]
-    for w in range(wall_point.shape[0]):
-        overlap = plane_overlap(px, py, pz, radius[i], wall_point, wall_normal, w)
-        previous = wall_overlap[i, w]
-        wall_overlap[i, w] = overlap
-        if TRACK:
-            note_transitions(stats, time, dt, overlap, previous)
-        if overlap <= 0.0:
-            if previous > 0.0:
-                wall_history[i, w, :] = 0.0  # contact ends: its history is dropped
-            continue
-        if overlap >= radius[i]:
-            fault(status, TUNNELLED, i, w, PLANE)
-            break
-        count += 1
-        nx, ny, nz = wall_normal[w, 0], wall_normal[w, 1], wall_normal[w, 2]
-        # a plane's normal never turns, so its history needs no rotation
-        fn, ftx, fty, ftz, increment = wall_contact(
-            i, velocity, angular_velocity, mass, radius, constants[pair_row[material[i], wall_material[w]]],
-            overlap, previous, nx, ny, nz, wall_history[i, w], dt)
-        if not finite(fn, ftx, fty, ftz):
-            fault(status, NON_FINITE_FORCE, i, w, PLANE)
-            break
-        fx += fn * nx - ftx
-        fy += fn * ny - fty
-        fz += fn * nz - ftz
-        if SPIN:
-            cx, cy, cz = cross(nx, ny, nz, ftx, fty, ftz)
-            tx += radius[i] * cx
-            ty += radius[i] * cy
-            tz += radius[i] * cz
-        if TRACK:
-            note_peaks(stats, overlap, fn, ftx, fty, ftz)
-            if i == 0 and w == probe_wall:
-                probe[PROBE_OVERLAP] = overlap
-                probe[PROBE_FN] = fn
-                probe[PROBE_FT], probe[PROBE_FT + 1], probe[PROBE_FT + 2] = ftx, fty, ftz
-                probe[PROBE_DISPLACEMENT] += increment[0]
-                probe[PROBE_DISPLACEMENT + 1] += increment[1]
-                probe[PROBE_DISPLACEMENT + 2] += increment[2]
-    if TRACK and i == 0 and 0 <= probe_wall and wall_overlap[0, probe_wall] <= 0.0:
-        probe[PROBE_OVERLAP], probe[PROBE_FN] = wall_overlap[0, probe_wall], 0.0
-        probe[PROBE_FT], probe[PROBE_FT + 1], probe[PROBE_FT + 2] = 0.0, 0.0, 0.0
-    return fx, fy, fz, tx, ty, tz, count
+def rotate_history(history, nx, ny, nz):
+    """Carry every vector slot of the law's history into the current tangent plane.
+    Unrolled over the law's (compile-time) slot offsets: a loop here would cost two
+    atomic reference-count updates per array argument and contact (see below)."""
+    for offset in numba.literal_unroll(VECTOR_OFFSETS):
+        rotate_slot_into_plane(history, offset, nx, ny, nz)
 
 
+# Performance rule for everything called per particle or per contact: a helper that takes
+# arrays must be straight-line code (no loop). numba cannot prune the reference-count
+# updates of array arguments across a loop inside an inlined helper, and each is an
+# atomic add on the array's shared header: ~50 of them per particle made the step
+# several times slower on one thread, and on two threads the headers' cache lines
+# bounced between the cores (ten times slower than one thread). Loops over walls,
+# triangles and neighbours therefore live in force_range itself.
 @numba.njit(cache=True, inline="always")
-def curved_wall_contact(i, velocity, angular_velocity, mass, radius, vector_offsets, constants_row,
-                        overlap, previous, nx, ny, nz, history, dt, acc):
-    """A contact with a wall whose normal turns as the sphere moves over it (cylinder,
-    mesh): the history is first carried into the current tangent plane."""
+def evaluate_contact(acc, constants_row, history, overlap, previous, normal, curved, vi, wi, vj, wj,
+                     lever_i, lever_j, effective_radius, effective_mass, dt, stats, status, where):
+    """The one evaluation every contact goes through (sphere-plane, -cylinder,
+    -triangle and -sphere): history into the tangent plane (``curved``: the normal
+    can turn), contact-point velocity, the law, and the force and torque on i added to
+    acc = (fx, fy, fz, tx, ty, tz, count). Vectors are 3-tuples; n points from the
+    partner to i.
+
+    A wall is a partner that does not move (v_j = w_j = 0, lever_j = 0); its lever arm
+    lever_i is the undeformed radius, as in the paper's rigid-body analysis (eqs 3-8).
+    A non-finite force is reported as a fault of where = (i, partner, partner kind).
+    Returns (acc, (force on i), (n x ft), fn, ft, displacement increment, finite).
+    """
+    nx, ny, nz = normal
+    if ROTATE_HISTORY and curved:
+        rotate_history(history, nx, ny, nz)
+    normal_velocity, tangential_velocity = pair_contact_velocity(
+        vi[0], vi[1], vi[2], wi[0], wi[1], wi[2], vj[0], vj[1], vj[2], wj[0], wj[1], wj[2], lever_i, lever_j,
+        nx, ny, nz)
+    increment = (tangential_velocity[0] * dt, tangential_velocity[1] * dt, tangential_velocity[2] * dt)
+    fn, ftx, fty, ftz = law_force(constants_row, effective_radius, effective_mass, overlap,
+                                  overlap - max(previous, 0.0), normal_velocity, increment, tangential_velocity,
+                                  history)
+    ok = finite(fn, ftx, fty, ftz)
+    if not ok:
+        fault(status, NON_FINITE_FORCE, where[0], where[1], where[2])
     fx, fy, fz, tx, ty, tz, count = acc
-    if SPIN:
-        rotate_history_into_plane(history, vector_offsets, nx, ny, nz)
-    fn, ftx, fty, ftz, increment = wall_contact(i, velocity, angular_velocity, mass, radius, constants_row,
-                                                overlap, previous, nx, ny, nz, history, dt)
-    fx += fn * nx - ftx
-    fy += fn * ny - fty
-    fz += fn * nz - ftz
+    ex, ey, ez = fn * nx - ftx, fn * ny - fty, fn * nz - ftz
+    cx, cy, cz = 0.0, 0.0, 0.0
     if SPIN:
         cx, cy, cz = cross(nx, ny, nz, ftx, fty, ftz)
-        tx += radius[i] * cx
-        ty += radius[i] * cy
-        tz += radius[i] * cz
-    return (fx, fy, fz, tx, ty, tz, count + 1), fn, ftx, fty, ftz
+    if TRACK and ok:
+        note_peaks(stats, overlap, fn, ftx, fty, ftz)
+    acc = (fx + ex, fy + ey, fz + ez, tx + lever_i * cx, ty + lever_i * cy, tz + lever_i * cz, count + 1)
+    return acc, (ex, ey, ez), (cx, cy, cz), fn, (ftx, fty, ftz), increment, ok
 
 
 @numba.njit(cache=True, inline="always")
-def cylinder_forces(i, position, velocity, angular_velocity, mass, radius, material, pair_row, constants,
-                    vector_offsets, base, axis, cylinder_radius, length, cylinder_material, history,
-                    cylinder_overlap_prev, dt, time, stats, status, acc):
-    for c in range(base.shape[0]):
-        overlap, nx, ny, nz = cylinder_overlap(position[i, 0], position[i, 1], position[i, 2], radius[i],
-                                               base, axis, cylinder_radius, length, c)
-        previous = cylinder_overlap_prev[i, c]
-        cylinder_overlap_prev[i, c] = overlap
-        if TRACK:
-            note_transitions(stats, time, dt, overlap, previous)
-        if overlap <= 0.0:
-            if previous > 0.0:
-                history[i, c, :] = 0.0
-            continue
-        if overlap >= radius[i]:
-            fault(status, TUNNELLED, i, c, CYLINDER)
-            break
-        acc, fn, ftx, fty, ftz = curved_wall_contact(
-            i, velocity, angular_velocity, mass, radius, vector_offsets,
-            constants[pair_row[material[i], cylinder_material[c]]], overlap, previous, nx, ny, nz,
-            history[i, c], dt, acc)
-        if not finite(fn, ftx, fty, ftz):
-            fault(status, NON_FINITE_FORCE, i, c, CYLINDER)
-            break
-        if TRACK:
-            note_peaks(stats, overlap, fn, ftx, fty, ftz)
-    return acc
-
-
-@numba.njit(cache=True, inline="always")
-def mesh_contact_geometry(i, position, radius, triangles, t):
-    """(overlap, normal, closest point, feature) of sphere i with triangle t."""
-    px, py, pz = position[i, 0], position[i, 1], position[i, 2]
+def mesh_contact_geometry(px, py, pz, ri, triangles, t):
+    """(overlap, normal, closest point, feature) of a sphere with triangle t."""
     cx, cy, cz, feature = triangle_closest_point(px, py, pz, triangles, t)
     dx, dy, dz = px - cx, py - cy, pz - cz
     distance = math.sqrt(dx * dx + dy * dy + dz * dz)
     if distance == 0.0:
-        return radius[i], 0.0, 0.0, 1.0, cx, cy, cz, feature
-    return radius[i] - distance, dx / distance, dy / distance, dz / distance, cx, cy, cz, feature
+        return ri, 0.0, 0.0, 1.0, cx, cy, cz, feature
+    return ri - distance, dx / distance, dy / distance, dz / distance, cx, cy, cz, feature
 
 
-# not inlined: it is called from four places of mesh_forces; inlining every copy of the
+# not inlined: it is called from four places of the MESHES block of force_range; inlining every copy of the
 # closest-point search took the mesh kernel's cold compilation from 27 to 49 s of CPU for
 # no gain (hopper scene, 250 beads, 0.3 s: 1.25 s of CPU either way; 2026-11-22)
 @numba.njit(cache=True)
-def mesh_entry_overlap(i, position, radius, triangles, candidates, start, stop, k, touches_face, tolerance):
+def mesh_entry_overlap(px, py, pz, ri, triangles, candidates, start, stop, k, touches_face, tolerance):
     """(overlap, normal) of sphere i with candidate entry k, after the rule of one contact
-    per feature region (see mesh_forces); -1 for a contact another entry carries.
+    per feature region (see force_range); -1 for a contact another entry carries.
 
     An edge or vertex contact is shadowed by a deeper edge or vertex contact (or, at
     equal depth, an earlier one) when its point is not above that contact's tangent
@@ -259,7 +197,7 @@ def mesh_entry_overlap(i, position, radius, triangles, candidates, start, stop, 
     distance, only the same surface seen from another triangle. In a concave corner the
     point is above the plane and both contacts count.
     """
-    overlap, nx, ny, nz, cx, cy, cz, feature = mesh_contact_geometry(i, position, radius, triangles, candidates[k])
+    overlap, nx, ny, nz, cx, cy, cz, feature = mesh_contact_geometry(px, py, pz, ri, triangles, candidates[k])
     if overlap > 0.0 and feature != FACE:
         if touches_face:
             overlap = -1.0
@@ -268,7 +206,7 @@ def mesh_entry_overlap(i, position, radius, triangles, candidates, start, stop, 
                 if other == k:
                     continue
                 o2, n2x, n2y, n2z, c2x, c2y, c2z, f2 = mesh_contact_geometry(
-                    i, position, radius, triangles, candidates[other])
+                    px, py, pz, ri, triangles, candidates[other])
                 if f2 != FACE and (o2 > overlap or (o2 == overlap and other < k)) \
                         and (cx - c2x) * n2x + (cy - c2y) * n2y + (cz - c2z) * n2z <= tolerance:
                     overlap = -1.0
@@ -276,193 +214,227 @@ def mesh_entry_overlap(i, position, radius, triangles, candidates, start, stop, 
     return overlap, nx, ny, nz
 
 
-@numba.njit(cache=True, inline="always")
-def mesh_forces(i, position, velocity, angular_velocity, mass, radius, material, pair_row, constants,
-                vector_offsets, triangles, triangle_material, offsets, candidates, history, mesh_overlap,
-                dt, time, stats, status, acc):
-    """Sphere-triangle contacts of particle i with its candidate triangles.
-
-    One contact per feature region: a face-interior contact always counts; an edge or
-    vertex contact counts only when the sphere touches no face interior (else the face
-    carries it, e.g. on a flat mesh split into triangles) and only once however many
-    triangles share that edge or vertex (same closest point).
-
-    A sphere moving across an edge or vertex passes from one triangle's entry to the
-    next: the contact with the first ends in the same step as the one with the second
-    starts. That is one contact moving on, so the new entry takes over the old one's
-    history and previous overlap (else the tangential force would restart from zero at
-    every edge). Entries that were touching are therefore processed first, and an
-    ending entry's history is kept until every entry of the row has been seen.
-    """
-    start, stop = offsets[i], offsets[i + 1]
-    touches_face = False
-    for k in range(start, stop):
-        overlap, nx, ny, nz, cx, cy, cz, feature = mesh_contact_geometry(i, position, radius, triangles, candidates[k])
-        if overlap > 0.0 and feature == FACE:
-            touches_face = True
-            break
-    tolerance = _SAME_POINT * radius[i]
-    ending = 0  # contacts of the last step that end in this one, history not yet dropped
-    for sweep in range(2):
-        # sweep 0: the entries touching at the last step; sweep 1: the others
-        for k in range(start, stop):
-            previous = mesh_overlap[k]
-            if (previous > 0.0) != (sweep == 0):
-                continue
-            t = candidates[k]
-            overlap, nx, ny, nz = mesh_entry_overlap(i, position, radius, triangles, candidates, start, stop, k,
-                                                     touches_face, tolerance)
-            if sweep == 0 and overlap <= 0.0:
-                ending += 1  # left as it is (previous > 0 marks it) until the row is done
-                continue
-            if overlap > 0.0 and sweep == 1 and ending > 0:
-                # a new contact while another ends: the same contact moving on
-                for e in range(start, stop):
-                    if mesh_overlap[e] > 0.0 and mesh_entry_overlap(i, position, radius, triangles, candidates,
-                                                                    start, stop, e, touches_face, tolerance)[0] <= 0.0:
-                        history[k, :] = history[e, :]
-                        previous = mesh_overlap[e]
-                        mesh_overlap[e] = 0.0  # handed over: it ends without a separation
-                        history[e, :] = 0.0
-                        ending -= 1
-                        break
-            mesh_overlap[k] = overlap
-            if TRACK:
-                note_transitions(stats, time, dt, overlap, previous)
-            if overlap <= 0.0:
-                continue
-            if overlap >= radius[i]:
-                fault(status, TUNNELLED, i, t, TRIANGLE)
-                break
-            acc, fn, ftx, fty, ftz = curved_wall_contact(
-                i, velocity, angular_velocity, mass, radius, vector_offsets,
-                constants[pair_row[material[i], triangle_material[t]]], overlap, previous, nx, ny, nz,
-                history[k], dt, acc)
-            if not finite(fn, ftx, fty, ftz):
-                fault(status, NON_FINITE_FORCE, i, t, TRIANGLE)
-                break
-            if TRACK:
-                note_peaks(stats, overlap, fn, ftx, fty, ftz)
-    if ending > 0:
-        # the contacts that ended without a successor: their history is dropped
-        for k in range(start, stop):
-            if mesh_overlap[k] > 0.0:
-                overlap = mesh_entry_overlap(i, position, radius, triangles, candidates, start, stop, k,
-                                             touches_face, tolerance)[0]
-                if overlap <= 0.0:
-                    if TRACK:
-                        note_transitions(stats, time, dt, overlap, mesh_overlap[k])
-                    mesh_overlap[k] = overlap
-                    history[k, :] = 0.0
-    return acc
-
-
-@numba.njit(cache=True, inline="always")
-def pair_forces(i, position, velocity, angular_velocity, mass, radius, material, pair_row, constants,
-                vector_offsets, offsets, neighbours, history, pair_overlap, pair_force, pair_torque,
-                dt, time, stats, status, acc):
-    """Contacts (i, j) of row i of the Verlet half list.
-
-    Lever arms R_i - d/2 and R_j - d/2 sum to the centre distance, so the pair's
-    torques balance the moment of its force and angular momentum is conserved to
-    round-off. The force on j and the direction n x ft of the torques are stored per
-    list entry for ``finish``; the torque on i is R_i' (n x ft), on j it is R_j' (n x ft).
-    """
-    fx, fy, fz, tx, ty, tz, count = acc
-    px, py, pz, ri = position[i, 0], position[i, 1], position[i, 2], radius[i]
-    for e in range(offsets[i], offsets[i + 1]):
-        j = neighbours[e]
-        dx, dy, dz = px - position[j, 0], py - position[j, 1], pz - position[j, 2]
-        distance_squared = dx * dx + dy * dy + dz * dz
-        reach = ri + radius[j]
-        previous = pair_overlap[e]
-        if distance_squared >= reach * reach:
-            if previous > 0.0 or TRACK:
-                overlap = reach - math.sqrt(distance_squared)
-                pair_overlap[e] = overlap
-                if TRACK:
-                    note_transitions(stats, time, dt, overlap, previous)
-                if previous > 0.0:
-                    history[e, :] = 0.0  # contact ends: its history is dropped
-            continue
-        distance = math.sqrt(distance_squared)
-        overlap = reach - distance
-        pair_overlap[e] = overlap
-        if TRACK:
-            note_transitions(stats, time, dt, overlap, previous)
-        if distance == 0.0:
-            fault(status, TUNNELLED, i, j, PARTICLE)
-            break
-        count += 1
-        inverse = 1.0 / distance
-        nx, ny, nz = dx * inverse, dy * inverse, dz * inverse
-        lever_i, lever_j = ri - 0.5 * overlap, radius[j] - 0.5 * overlap
-        if SPIN:
-            rotate_history_into_plane(history[e], vector_offsets, nx, ny, nz)
-            normal_velocity, tangential_velocity = pair_contact_velocity(
-                velocity[i, 0], velocity[i, 1], velocity[i, 2],
-                angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2],
-                velocity[j, 0], velocity[j, 1], velocity[j, 2],
-                angular_velocity[j, 0], angular_velocity[j, 1], angular_velocity[j, 2],
-                lever_i, lever_j, nx, ny, nz)
-        else:
-            normal_velocity, tangential_velocity = pair_contact_velocity(
-                velocity[i, 0], velocity[i, 1], velocity[i, 2], 0.0, 0.0, 0.0,
-                velocity[j, 0], velocity[j, 1], velocity[j, 2], 0.0, 0.0, 0.0,
-                lever_i, lever_j, nx, ny, nz)
-        increment = (tangential_velocity[0] * dt, tangential_velocity[1] * dt, tangential_velocity[2] * dt)
-        effective_radius = ri * radius[j] / reach
-        effective_mass = mass[i] * mass[j] / (mass[i] + mass[j])
-        fn, ftx, fty, ftz = law_force(constants[pair_row[material[i], material[j]]], effective_radius,
-                                      effective_mass, overlap, overlap - max(previous, 0.0), normal_velocity,
-                                      increment, tangential_velocity, history[e])
-        if not finite(fn, ftx, fty, ftz):
-            fault(status, NON_FINITE_FORCE, i, j, PARTICLE)
-            break
-        ex, ey, ez = fn * nx - ftx, fn * ny - fty, fn * nz - ftz
-        fx += ex
-        fy += ey
-        fz += ez
-        pair_force[e, 0], pair_force[e, 1], pair_force[e, 2] = ex, ey, ez
-        if SPIN:
-            cx, cy, cz = cross(nx, ny, nz, ftx, fty, ftz)
-            tx += lever_i * cx
-            ty += lever_i * cy
-            tz += lever_i * cz
-            pair_torque[e, 0], pair_torque[e, 1], pair_torque[e, 2] = cx, cy, cz
-        if TRACK:
-            note_peaks(stats, overlap, fn, ftx, fty, ftz)
-    return fx, fy, fz, tx, ty, tz, count
-
-
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, error_model="numpy", fastmath=FAST)
 def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking):
-    """Gravity and the contacts owned by particles first..last-1; returns their count."""
+    """Gravity and the contacts owned by particles first..last-1; returns their count.
+
+    Particle i owns its walls and the pairs (i, j > i) of its row of the Verlet half
+    list; a pair's force on j and its torque direction are stored per list entry for
+    ``finish``. Lever arms of a pair: R_i - d/2 and R_j - d/2 sum to the centre
+    distance, so the pair's torques balance the moment of its force and angular
+    momentum is conserved to round-off.
+
+    """
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
-    pair_row, constants, vector_offsets = law
+    pair_row, constants = law
     wall_point, wall_normal, wall_material, wall_history, wall_overlap = planes
     base, axis, cylinder_radius, length, cylinder_material, cylinder_history, cylinder_overlap_prev = cylinders
     triangles, triangle_material, mesh_offsets, mesh_candidates, mesh_history, mesh_overlap = meshes
-    offsets, neighbours, pair_history, pair_overlap, pair_force, pair_torque, reverse_offsets, reverse_entries = pairs
+    offsets, neighbours, pair_history, pair_overlap, reaction, reaction_slot, reverse_offsets = pairs
     probe_wall, probe, stats, status = tracking
+    longest_row = 0
+    if PAIRS:
+        for i in range(first, last):
+            longest_row = max(longest_row, offsets[i + 1] - offsets[i])
+    touching_entries = np.empty(longest_row, dtype=np.int64)
     active = 0
     for i in range(first, last):
-        acc = (mass[i] * gravity[0], mass[i] * gravity[1], mass[i] * gravity[2], 0.0, 0.0, 0.0, 0)
-        acc = plane_forces(i, position, velocity, angular_velocity, mass, radius, material, pair_row, constants,
-                           wall_point, wall_normal, wall_material, wall_history, wall_overlap,
-                           dt, time, probe_wall, probe, stats, status, acc)
+        px, py, pz, ri, mi, mat = position[i, 0], position[i, 1], position[i, 2], radius[i], mass[i], material[i]
+        vi = (velocity[i, 0], velocity[i, 1], velocity[i, 2])
+        wi = ZERO
+        if SPIN:
+            wi = (angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2])
+        acc = (mi * gravity[0], mi * gravity[1], mi * gravity[2], 0.0, 0.0, 0.0, 0)
+
+        # Walls. Each kind has its own loop: binding the history rows of different
+        # arrays to one variable would cost reference counting per contact (see above).
+        # planes: a plane's normal never turns, so its history needs no rotation
+        for w in range(wall_point.shape[0]):
+            overlap = plane_overlap(px, py, pz, ri, wall_point, wall_normal, w)
+            previous = wall_overlap[i, w]
+            wall_overlap[i, w] = overlap
+            if TRACK:
+                note_transitions(stats, time, dt, overlap, previous)
+            if overlap <= 0.0:
+                if previous > 0.0:
+                    wall_history[i, w, :] = 0.0  # contact ends: its history is dropped
+                continue
+            if overlap >= ri:
+                fault(status, TUNNELLED, i, w, PLANE)
+                break
+            acc, _, _, fn, ft, increment, ok = evaluate_contact(
+                acc, constants[pair_row[mat, wall_material[w]]], wall_history[i, w], overlap, previous,
+                (wall_normal[w, 0], wall_normal[w, 1], wall_normal[w, 2]), False, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi,
+                dt, stats, status, (i, w, PLANE))
+            if not ok:
+                break
+            if TRACK and i == 0 and w == probe_wall:
+                probe[PROBE_OVERLAP] = overlap
+                probe[PROBE_FN] = fn
+                probe[PROBE_FT], probe[PROBE_FT + 1], probe[PROBE_FT + 2] = ft
+                probe[PROBE_DISPLACEMENT] += increment[0]
+                probe[PROBE_DISPLACEMENT + 1] += increment[1]
+                probe[PROBE_DISPLACEMENT + 2] += increment[2]
+        if TRACK and i == 0 and 0 <= probe_wall and wall_overlap[0, probe_wall] <= 0.0:
+            probe[PROBE_OVERLAP], probe[PROBE_FN] = wall_overlap[0, probe_wall], 0.0
+            probe[PROBE_FT], probe[PROBE_FT + 1], probe[PROBE_FT + 2] = 0.0, 0.0, 0.0
+
         if CYLINDERS:
-            acc = cylinder_forces(i, position, velocity, angular_velocity, mass, radius, material, pair_row,
-                                  constants, vector_offsets, base, axis, cylinder_radius, length, cylinder_material,
-                                  cylinder_history, cylinder_overlap_prev, dt, time, stats, status, acc)
+            for c in range(base.shape[0]):
+                overlap, nx, ny, nz = cylinder_overlap(px, py, pz, ri, base, axis, cylinder_radius, length, c)
+                previous = cylinder_overlap_prev[i, c]
+                cylinder_overlap_prev[i, c] = overlap
+                if TRACK:
+                    note_transitions(stats, time, dt, overlap, previous)
+                if overlap <= 0.0 or overlap >= ri:
+                    if overlap <= 0.0 < previous:
+                        cylinder_history[i, c, :] = 0.0
+                    elif overlap >= ri:
+                        fault(status, TUNNELLED, i, c, CYLINDER)
+                        break
+                    continue
+                acc, _, _, _, _, _, ok = evaluate_contact(
+                    acc, constants[pair_row[mat, cylinder_material[c]]], cylinder_history[i, c], overlap, previous,
+                    (nx, ny, nz), True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats, status, (i, c, CYLINDER))
+                if not ok:
+                    break
+
         if MESHES:
-            acc = mesh_forces(i, position, velocity, angular_velocity, mass, radius, material, pair_row, constants,
-                              vector_offsets, triangles, triangle_material, mesh_offsets, mesh_candidates,
-                              mesh_history, mesh_overlap, dt, time, stats, status, acc)
+            # One contact per feature region: a face-interior contact always counts; an
+            # edge or vertex contact counts only when the sphere touches no face interior
+            # (else the face carries it, e.g. on a flat mesh split into triangles) and only
+            # once however many triangles share that edge or vertex (mesh_entry_overlap).
+            # A sphere moving across an edge or vertex passes from one triangle's entry to
+            # the next: the contact with the first ends in the same step as the one with
+            # the second starts. That is one contact moving on, so the new entry takes over
+            # the old one's history and previous overlap (else the tangential force would
+            # restart from zero at every edge). Entries that were touching are therefore
+            # processed first, and an ending entry's history is kept until every entry of
+            # the row has been seen.
+            start, stop = mesh_offsets[i], mesh_offsets[i + 1]
+            touches_face = False
+            for k in range(start, stop):
+                overlap, nx, ny, nz, cx, cy, cz, feature = mesh_contact_geometry(px, py, pz, ri, triangles,
+                                                                                 mesh_candidates[k])
+                if overlap > 0.0 and feature == FACE:
+                    touches_face = True
+                    break
+            tolerance = _SAME_POINT * ri
+            ending = 0  # contacts of the last step that end in this one, history not yet dropped
+            for sweep in range(2):
+                # sweep 0: the entries touching at the last step; sweep 1: the others
+                for k in range(start, stop):
+                    previous = mesh_overlap[k]
+                    if (previous > 0.0) != (sweep == 0):
+                        continue
+                    t = mesh_candidates[k]
+                    overlap, nx, ny, nz = mesh_entry_overlap(px, py, pz, ri, triangles, mesh_candidates, start, stop,
+                                                             k, touches_face, tolerance)
+                    if sweep == 0 and overlap <= 0.0:
+                        ending += 1  # left as it is (previous > 0 marks it) until the row is done
+                        continue
+                    if overlap > 0.0 and sweep == 1 and ending > 0:
+                        # a new contact while another ends: the same contact moving on
+                        for e in range(start, stop):
+                            if mesh_overlap[e] > 0.0 and mesh_entry_overlap(
+                                    px, py, pz, ri, triangles, mesh_candidates, start, stop, e, touches_face,
+                                    tolerance)[0] <= 0.0:
+                                mesh_history[k, :] = mesh_history[e, :]
+                                previous = mesh_overlap[e]
+                                mesh_overlap[e] = 0.0  # handed over: it ends without a separation
+                                mesh_history[e, :] = 0.0
+                                ending -= 1
+                                break
+                    mesh_overlap[k] = overlap
+                    if TRACK:
+                        note_transitions(stats, time, dt, overlap, previous)
+                    if overlap <= 0.0:
+                        continue
+                    if overlap >= ri:
+                        fault(status, TUNNELLED, i, t, TRIANGLE)
+                        break
+                    acc, _, _, _, _, _, ok = evaluate_contact(
+                        acc, constants[pair_row[mat, triangle_material[t]]], mesh_history[k], overlap, previous,
+                        (nx, ny, nz), True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats, status, (i, t, TRIANGLE))
+                    if not ok:
+                        break
+            if ending > 0:
+                # the contacts that ended without a successor: their history is dropped
+                for k in range(start, stop):
+                    if mesh_overlap[k] > 0.0:
+                        overlap = mesh_entry_overlap(px, py, pz, ri, triangles, mesh_candidates, start, stop, k,
+                                                     touches_face, tolerance)[0]
+                        if overlap <= 0.0:
+                            if TRACK:
+                                note_transitions(stats, time, dt, overlap, mesh_overlap[k])
+                            mesh_overlap[k] = overlap
+                            mesh_history[k, :] = 0.0
+
         if PAIRS:
-            acc = pair_forces(i, position, velocity, angular_velocity, mass, radius, material, pair_row, constants,
-                              vector_offsets, offsets, neighbours, pair_history, pair_overlap, pair_force,
-                              pair_torque, dt, time, stats, status, acc)
+            # Two passes over the row. Whether a listed pair touches is unpredictable
+            # (about a third do), and a mispredicted branch would flush the long
+            # square-root and division chains of the contacts in flight: the first pass
+            # only collects the touching entries, without a branch on it; the second
+            # evaluates them back to back.
+            n_touching = 0
+            for e in range(offsets[i], offsets[i + 1]):
+                j = neighbours[e]
+                dx, dy, dz = px - position[j, 0], py - position[j, 1], pz - position[j, 2]
+                distance_squared = dx * dx + dy * dy + dz * dz
+                reach = ri + radius[j]
+                touching = distance_squared < reach * reach
+                touching_entries[n_touching] = e
+                n_touching += touching
+                previous = pair_overlap[e]
+                if TRACK or ((not touching) & (previous > 0.0)):
+                    if not touching:
+                        overlap = reach - math.sqrt(distance_squared)
+                        pair_overlap[e] = overlap
+                        if TRACK:
+                            note_transitions(stats, time, dt, overlap, previous)
+                        if previous > 0.0:
+                            # contact ends: its history is dropped and its reaction on j
+                            # is zero from now on (finish adds every entry unconditionally)
+                            pair_history[e, :] = 0.0
+                            reaction[reaction_slot[e], :] = 0.0
+            for k in range(n_touching):
+                e = touching_entries[k]
+                j = neighbours[e]
+                dx, dy, dz = px - position[j, 0], py - position[j, 1], pz - position[j, 2]
+                distance_squared = dx * dx + dy * dy + dz * dz
+                rj = radius[j]
+                reach = ri + rj
+                previous = pair_overlap[e]
+                distance = math.sqrt(distance_squared)
+                overlap = reach - distance
+                pair_overlap[e] = overlap
+                if TRACK:
+                    note_transitions(stats, time, dt, overlap, previous)
+                if distance == 0.0:
+                    fault(status, TUNNELLED, i, j, PARTICLE)
+                    break
+                inverse = 1.0 / distance
+                wj = ZERO
+                if SPIN:
+                    wj = (angular_velocity[j, 0], angular_velocity[j, 1], angular_velocity[j, 2])
+                mj = mass[j]
+                lever_j = rj - 0.5 * overlap
+                acc, on_i, direction, _, _, _, ok = evaluate_contact(
+                    acc, constants[pair_row[mat, material[j]]], pair_history[e], overlap, previous,
+                    (dx * inverse, dy * inverse, dz * inverse), True,
+                    vi, wi, (velocity[j, 0], velocity[j, 1], velocity[j, 2]), wj,
+                    ri - 0.5 * overlap, lever_j, ri * rj / reach, mi * mj / (mi + mj), dt, stats, status, (i, j, PARTICLE))
+                if not ok:
+                    break
+                # j's share, added by finish: the force on i (j gets its opposite) and the
+                # torque on j, R_j' (n x ft), at the slot of the entry in j's reverse row
+                r = reaction_slot[e]
+                reaction[r, 0], reaction[r, 1], reaction[r, 2] = on_i
+                if SPIN:
+                    reaction[r, 3] = lever_j * direction[0]
+                    reaction[r, 4] = lever_j * direction[1]
+                    reaction[r, 5] = lever_j * direction[2]
+
         fx, fy, fz, tx, ty, tz, count = acc
         force[i, 0], force[i, 1], force[i, 2] = fx, fy, fz
         torque[i, 0], torque[i, 1], torque[i, 2] = tx, ty, tz
@@ -470,8 +442,8 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
     return active
 
 
-# particles per parallel work item: large enough to amortise the call, small enough
-# for the threads to share the work evenly
+# particles per parallel work item: large enough to amortise the call (which unpacks the
+# argument tuples), small enough for the threads to share the work evenly
 CHUNK = 256
 
 
@@ -487,43 +459,71 @@ def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt
     return active
 
 
-@numba.njit(cache=True, parallel=PARALLEL)
-def finish(particles, pairs, dt):
-    """Add the pair reactions to each particle, then the closing half kick."""
+@numba.njit(cache=True, parallel=PARALLEL, fastmath=FAST)
+def finish_kick_drift(particles, pairs, dt, drift_on, position_at_build, half_skin_squared):
+    """Add the pair reactions to each particle and apply the closing half kick; with
+    ``drift_on`` also the next step's opening half kick and drift in the same pass (one
+    parallel region fewer per step; the same operations in the same order, so the same
+    bits as ``finish`` then ``kick_drift``). Returns how many particles have moved
+    more than half the skin since the neighbour list was built (0 without drift)."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
-    offsets, neighbours, history, pair_overlap, pair_force, pair_torque, reverse_offsets, reverse_entries = pairs
+    offsets, neighbours, history, pair_overlap, reaction, reaction_slot, reverse_offsets = pairs
+    moved_too_far = 0
     for p in particle_range(position.shape[0]):
         if PAIRS:
+            # the reactions of the pairs (i < p, p) in ascending i, stored contiguously
+            # (the reverse rows): a streamed read, and the same sum whatever the thread
+            # count. Entries not in contact hold zeros: no branch, and x - 0 is exactly x.
+            fx, fy, fz = force[p, 0], force[p, 1], force[p, 2]
+            tx, ty, tz = torque[p, 0], torque[p, 1], torque[p, 2]
             for k in range(reverse_offsets[p], reverse_offsets[p + 1]):
-                e = reverse_entries[k]
-                overlap = pair_overlap[e]
-                if overlap > 0.0:
-                    force[p, 0] -= pair_force[e, 0]
-                    force[p, 1] -= pair_force[e, 1]
-                    force[p, 2] -= pair_force[e, 2]
-                    if SPIN:
-                        lever = radius[p] - 0.5 * overlap
-                        torque[p, 0] += lever * pair_torque[e, 0]
-                        torque[p, 1] += lever * pair_torque[e, 1]
-                        torque[p, 2] += lever * pair_torque[e, 2]
+                fx -= reaction[k, 0]
+                fy -= reaction[k, 1]
+                fz -= reaction[k, 2]
+                if SPIN:
+                    tx += reaction[k, 3]
+                    ty += reaction[k, 4]
+                    tz += reaction[k, 5]
+            force[p, 0], force[p, 1], force[p, 2] = fx, fy, fz
+            torque[p, 0], torque[p, 1], torque[p, 2] = tx, ty, tz
         half_kick(p, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, dt, SPIN)
+        if drift_on and kick_drift_one(p, position, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, dt,
+                                        position_at_build, half_skin_squared):
+            moved_too_far += 1
+    return moved_too_far
 
 
-@numba.njit(cache=True, parallel=PARALLEL)
+@numba.njit(cache=True)
+def finish(particles, pairs, dt):
+    """Add the pair reactions to each particle, then the closing half kick."""
+    finish_kick_drift(particles, pairs, dt, False, particles[0], 0.0)
+
+
+@numba.njit(cache=True, inline="always")
+def kick_drift_one(p, position, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, dt,
+                   position_at_build, half_skin_squared):
+    """Opening half kick and drift of particle p; True when it has moved more than half
+    the skin since the neighbour list was built."""
+    half_kick(p, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, dt, SPIN)
+    drift(p, position, velocity, dt)
+    if not CHECK_DISPLACEMENT:
+        return False
+    dx = position[p, 0] - position_at_build[p, 0]
+    dy = position[p, 1] - position_at_build[p, 1]
+    dz = position[p, 2] - position_at_build[p, 2]
+    return dx * dx + dy * dy + dz * dz > half_skin_squared
+
+
+@numba.njit(cache=True, parallel=PARALLEL, fastmath=FAST)
 def kick_drift(particles, dt, position_at_build, half_skin_squared):
     """Opening half kick and drift; returns how many particles have moved more than
     half the skin since the neighbour list was built."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     moved_too_far = 0
     for p in particle_range(position.shape[0]):
-        half_kick(p, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, dt, SPIN)
-        drift(p, position, velocity, dt)
-        if CHECK_DISPLACEMENT:
-            dx = position[p, 0] - position_at_build[p, 0]
-            dy = position[p, 1] - position_at_build[p, 1]
-            dz = position[p, 2] - position_at_build[p, 2]
-            if dx * dx + dy * dy + dz * dz > half_skin_squared:
-                moved_too_far += 1
+        if kick_drift_one(p, position, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, dt,
+                          position_at_build, half_skin_squared):
+            moved_too_far += 1
     return moved_too_far
 
 
@@ -533,26 +533,33 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
     """Advance up to n_steps; return (steps completed, neighbour list needs a rebuild).
 
     Returns early
-    * after the drift of a step that took a particle more than half the skin from where
-      the Verlet list was built: that step is not counted; the caller rebuilds the list
-      and calls again with ``resume`` True, which completes it from its force evaluation;
+    * after a drift that took a particle more than half the skin from where the Verlet
+      list was built: the caller rebuilds the list and calls again with ``resume``
+      True, which continues from the force evaluation of the step that drift began;
     * after the step in which the last contact ended (``stop_at_separation``, once a
       contact has occurred; tracked scenes only);
     * on a fault (status[0] != OK).
     ``trace`` (rows = steps, may have 0 rows) receives the probed contact each step.
     Times are start_time + k dt, not a running sum, so long runs do not drift.
+
+    Two parallel passes a step: forces, then reactions + closing half kick fused with
+    the next step's opening half kick and drift. The call's last step (and every traced
+    or stop-at-separation step) ends on the closing half kick, so the velocities the
+    caller sees are those at the end of a step.
     """
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     probe_wall, probe, stats, status = tracking
+    drifted = resume  # the opening half kick and drift of the current step are done
     for step in range(n_steps):
-        if not (resume and step == 0):
+        if not drifted:
             if kick_drift(particles, dt, position_at_build, half_skin_squared) > 0:
                 return step, True
         time = start_time + (start_step + step + 1) * dt
         active = compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking)
         if status[0] != OK:
             return step + 1, False
-        finish(particles, pairs, dt)
+        drifted = step + 1 < n_steps and step + 1 >= trace.shape[0] and not stop_at_separation
+        moved_too_far = finish_kick_drift(particles, pairs, dt, drifted, position_at_build, half_skin_squared)
         if not TRACK and active > 0 and stats[FIRST_CONTACT_TIME] < 0.0:
             stats[FIRST_CONTACT_TIME] = time  # to the step: only the serial loop interpolates
         if step < trace.shape[0]:
@@ -562,6 +569,8 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
             trace[step, 12:15] = angular_velocity[0]
         if stop_at_separation and active == 0 and stats[FIRST_CONTACT_TIME] >= 0.0:
             return step + 1, False
+        if moved_too_far > 0:
+            return step + 1, True
     return n_steps, False
 
 

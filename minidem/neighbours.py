@@ -346,11 +346,13 @@ def carry_history(old_offsets, old_keys, old_history, old_overlap, new_offsets, 
 
 @numba.njit(cache=True)
 def reverse_index(offsets, neighbours, n_particles):
-    """For each particle p, the list entries (i, p) naming it as the partner, in
-    ascending i: the CSR of the transposed half list (a counting sort, O(N + M)).
+    """The transposed half list: for each particle p the entries (i, p) naming it as the
+    partner, in ascending i (a counting sort, O(N + M)).
 
-    The engine adds the reactions of p's pairs in this fixed order, so its force sums
-    are the same whatever the thread count.
+    Returns (reverse_offsets (N + 1,), slot (M,)): p's entries occupy positions
+    reverse_offsets[p]..reverse_offsets[p + 1] of the transposed order, and entry e is
+    at position slot[e]. The engine stores each pair's reaction at its slot, so p reads
+    its reactions contiguously and adds them in a fixed order whatever the thread count.
     """
     reverse_offsets = np.zeros(n_particles + 1, dtype=np.int64)
     for e in range(neighbours.shape[0]):
@@ -358,13 +360,13 @@ def reverse_index(offsets, neighbours, n_particles):
     for p in range(n_particles):
         reverse_offsets[p + 1] += reverse_offsets[p]
     next_slot = reverse_offsets[:-1].copy()
-    entries = np.empty(neighbours.shape[0], dtype=np.int64)
+    slot = np.empty(neighbours.shape[0], dtype=np.int64)
     for i in range(n_particles):
         for e in range(offsets[i], offsets[i + 1]):
             j = neighbours[e]
-            entries[next_slot[j]] = e
+            slot[e] = next_slot[j]
             next_slot[j] += 1
-    return reverse_offsets, entries
+    return reverse_offsets, slot
 
 
 @numba.njit(cache=True)
@@ -376,6 +378,21 @@ def _triangle_box_distance_squared(p, radius_plus_skin, lower, upper):
         elif p[axis] > upper[axis]:
             d += (p[axis] - upper[axis]) ** 2
     return d
+
+
+@numba.njit(cache=True)
+def _scan_triangles(point, reach, triangles, lower, upper, out, write):
+    """Count (and, if ``write``, store into ``out``) the triangles whose closest point
+    is within ``reach`` of ``point``, in ascending id; bounding boxes first."""
+    found = 0
+    for t in range(triangles.shape[0]):
+        if _triangle_box_distance_squared(point, reach, lower[t], upper[t]) < reach * reach:
+            cx, cy, cz, feature = triangle_closest_point(point[0], point[1], point[2], triangles, t)
+            if (point[0] - cx) ** 2 + (point[1] - cy) ** 2 + (point[2] - cz) ** 2 < reach * reach:
+                if write:
+                    out[found] = t
+                found += 1
+    return found
 
 
 @numba.njit(cache=True, parallel=True)
@@ -395,29 +412,15 @@ def mesh_candidates(positions, radii, skin, triangles):
         for axis in range(3):
             lower[t, axis] = min(triangles[t, 0, axis], triangles[t, 1, axis], triangles[t, 2, axis])
             upper[t, axis] = max(triangles[t, 0, axis], triangles[t, 1, axis], triangles[t, 2, axis])
+    # pass 1 counts, pass 2 fills at prefix-sum offsets (as in build_pairs)
+    no_output = np.empty(0, dtype=np.int64)
     counts = np.zeros(n_particles, dtype=np.int64)
     for p in numba.prange(n_particles):
-        reach = radii[p] + skin
-        for t in range(n_triangles):
-            if _triangle_box_distance_squared(positions[p], reach, lower[t], upper[t]) < reach * reach:
-                cx, cy, cz, feature = triangle_closest_point(positions[p, 0], positions[p, 1], positions[p, 2],
-                                                             triangles, t)
-                d2 = (positions[p, 0] - cx) ** 2 + (positions[p, 1] - cy) ** 2 + (positions[p, 2] - cz) ** 2
-                if d2 < reach * reach:
-                    counts[p] += 1
+        counts[p] = _scan_triangles(positions[p], radii[p] + skin, triangles, lower, upper, no_output, False)
     offsets = np.zeros(n_particles + 1, dtype=np.int64)
     for p in range(n_particles):
         offsets[p + 1] = offsets[p] + counts[p]
     found = np.empty(offsets[n_particles], dtype=np.int64)
     for p in numba.prange(n_particles):
-        reach = radii[p] + skin
-        k = offsets[p]
-        for t in range(n_triangles):
-            if _triangle_box_distance_squared(positions[p], reach, lower[t], upper[t]) < reach * reach:
-                cx, cy, cz, feature = triangle_closest_point(positions[p, 0], positions[p, 1], positions[p, 2],
-                                                             triangles, t)
-                d2 = (positions[p, 0] - cx) ** 2 + (positions[p, 1] - cy) ** 2 + (positions[p, 2] - cz) ** 2
-                if d2 < reach * reach:
-                    found[k] = t
-                    k += 1
+        _scan_triangles(positions[p], radii[p] + skin, triangles, lower, upper, found[offsets[p]:offsets[p + 1]], True)
     return offsets, found

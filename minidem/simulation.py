@@ -83,7 +83,7 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
         engine.update((_TEMPLATE.parent / name).read_bytes())
     key = hashlib.sha256(
         f"{engine.hexdigest()}|{_law_source_hash(law)}|{entry.distribution}|{entry.version}|{func.__module__}."
-        f"{func.__qualname__}|{flags}|{numba.__version__}|{__version__}".encode()
+        f"{func.__qualname__}|{flags}|{law.vector_history_offsets}|{numba.__version__}|{__version__}".encode()
     ).hexdigest()[:16]
     module_name = f"minidem_kernel_{law.name}_{key}"
     if module_name in _LOADED:
@@ -93,7 +93,9 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
     _, tail = rest.split(_BLOCK_END, 1)
     block = (f"{_BLOCK_START} (law '{law.name}' from {entry.distribution} {entry.version})\n"
              f"from {func.__module__} import {func.__qualname__} as law_force  # noqa: E402\n\n"
-             + "".join(f"{name} = {value}\n" for name, value in flags.items()) + _BLOCK_END)
+             + "".join(f"{name} = {value}\n" for name, value in flags.items())
+             # the law's vector history slots, as a compile-time constant the kernel unrolls
+             + f"VECTOR_OFFSETS = {tuple(law.vector_history_offsets)!r}\n" + _BLOCK_END)
     path = cache_directory() / f"{module_name}.py"
     if not path.exists():
         # written once and never touched again: numba keys its cache on the file's stamp
@@ -168,7 +170,7 @@ class State:
         self.mass = scene.mass
         self.particles = (self.position, self.velocity, self.angular_velocity, self.force, self.torque,
                           self.mass, 1.0 / self.mass, 1.0 / scene.inertia, scene.radius, scene.particle_material)
-        self.law = (sim.pair_row, sim.constants, np.array(sim.law.vector_history_offsets, dtype=np.int64))
+        self.law = (sim.pair_row, sim.constants)
         plane_overlap = scene.radius[:, None] - np.einsum(
             "iwk,wk->iw", self.position[:, None, :] - scene.wall_point[None, :, :], scene.wall_normal)
         self.planes = (scene.wall_point, scene.wall_normal, scene.wall_material,
@@ -179,20 +181,22 @@ class State:
         empty_index = np.zeros(0, dtype=np.int64)
         self.meshes = (walls.triangles, walls.triangle_material, np.zeros(n + 1, dtype=np.int64), empty_index,
                        np.zeros((0, h)), np.zeros(0))
+        # (offsets, partners, history, overlap, reactions (force on i, torque on j) in the
+        # transposed list's order, each entry's slot there, transposed offsets)
         self.pairs = (np.zeros(n + 1, dtype=np.int64), empty_index, np.zeros((0, h)), np.zeros(0),
-                      np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(n + 1, dtype=np.int64), empty_index)
+                      np.zeros((0, 6)), empty_index, np.zeros(n + 1, dtype=np.int64))
         self.position_at_build = self.position.copy()
         self.builds = 0
 
     def contact_pairs(self):
         """(pairs (M, 2) particle indices, normal force (M,) N) of touching particle pairs."""
-        offsets, neighbours_, _, overlap, pair_force = self.pairs[:5]
+        offsets, neighbours_, _, overlap, reaction, slot = self.pairs[:6]
         first = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
         touching = overlap > 0.0
         i, j = first[touching], neighbours_[touching]
         normal = self.position[i] - self.position[j]
         normal /= np.linalg.norm(normal, axis=1)[:, None]
-        return np.column_stack([i, j]), np.einsum("mk,mk->m", pair_force[touching], normal)
+        return np.column_stack([i, j]), np.einsum("mk,mk->m", reaction[slot[touching], :3], normal)
 
     # -- checkpoints -------------------------------------------------------------
     def capture(self, into: dict | None = None) -> dict[str, np.ndarray]:
@@ -232,8 +236,11 @@ class State:
                    + np.count_nonzero(self.cylinders[6] > 0) + np.count_nonzero(self.meshes[5] > 0))
 
     def kinetic_energy(self, inertia) -> float:
-        return float(0.5 * np.dot(self.mass, np.einsum("ik,ik->i", self.velocity, self.velocity))
-                     + 0.5 * np.dot(inertia, np.einsum("ik,ik->i", self.angular_velocity, self.angular_velocity)))
+        # np.sum, not np.dot: a BLAS dot of 20,000 terms starts OpenBLAS threads that
+        # then spin on the cores the kernel's threads need, and its sum order depends on
+        # the BLAS thread count
+        return float(0.5 * np.sum(self.mass * np.einsum("ik,ik->i", self.velocity, self.velocity))
+                     + 0.5 * np.sum(inertia * np.einsum("ik,ik->i", self.angular_velocity, self.angular_velocity)))
 
 
 class Simulation:
@@ -351,10 +358,8 @@ class Simulation:
                 first = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
                 overlap = radius[first] + radius[found] - np.linalg.norm(
                     state.position[first] - state.position[found], axis=1)
-            reverse_offsets, reverse_entries = neighbours.reverse_index(offsets, found, len(radius))
-            m = found.shape[0]
-            state.pairs = (offsets, found, history, overlap, np.zeros((m, 3)), np.zeros((m, 3)),
-                           reverse_offsets, reverse_entries)
+            reverse_offsets, slot = neighbours.reverse_index(offsets, found, len(radius))
+            state.pairs = (offsets, found, history, overlap, np.zeros((found.shape[0], 6)), slot, reverse_offsets)
         if state.meshes[0].shape[0]:
             triangles, triangle_material, old_offsets, old_found, old_history, old_overlap = state.meshes
             offsets, found = neighbours.mesh_candidates(state.position, radius, self.skin, triangles)
