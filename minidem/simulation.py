@@ -147,8 +147,8 @@ _STATE_TUPLES = {
     "planes": (None, None, None, "plane_history", "plane_overlap"),
     "cylinders": (None, None, None, None, None, "cylinder_history", "cylinder_overlap"),
     "meshes": (None, None, "mesh_offsets", "mesh_candidates", "mesh_history", "mesh_overlap"),
-    "pairs": ("pair_offsets", "pair_neighbours", "pair_history", "pair_overlap", "pair_force", "pair_torque",
-              "pair_reverse_offsets", "pair_reverse_entries"),
+    "pairs": ("pair_offsets", "pair_neighbours", "pair_history", "pair_overlap", "pair_reaction",
+              "pair_reaction_slot", "pair_reverse_offsets"),
 }
 
 

@@ -187,7 +187,8 @@ def test_rigidly_rotating_contact_keeps_its_tangential_force(law_name):
 
     def contact_force(normal, v_i, w_i, v_j, w_j, overlap_increment):
         approach, vt = contact.pair_contact_velocity(*v_i, *w_i, *v_j, *w_j, lever, lever, *normal)
-        contact.rotate_history_into_plane(history, offsets, *normal)
+        for offset in offsets:  # as the kernel does for each vector history slot
+            contact.rotate_slot_into_plane(history, offset, *normal)
         increment = (vt[0] * dt, vt[1] * dt, vt[2] * dt)
         fn, ftx, fty, ftz = law.force(constants, effective_radius, effective_mass, overlap, overlap_increment,
                                       approach, increment, vt, history)
