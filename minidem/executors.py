@@ -216,7 +216,11 @@ class LocalDaskProcesses:
     """``dask scheduler`` and N ``dask worker`` processes on 127.0.0.1 (random free
     ports, one thread each), each in its own process group so that it can be killed
     whole, and every one torn down on exit, also after an error. On a real cluster the
-    user starts these (docs/sweeps-on-a-cluster.md)."""
+    user starts these (docs/sweeps-on-a-cluster.md).
+
+    The groups stay in the caller's session: Linux's autogroup scheduler shares a busy
+    CPU between sessions, so workers in sessions of their own would get more CPU than
+    local worker processes and skew a comparison of the two."""
 
     def __init__(self, n_workers: int, env: dict | None = None, start_timeout_s: float = 60.0):
         self.n_workers, self.start_timeout_s = n_workers, start_timeout_s
@@ -230,7 +234,7 @@ class LocalDaskProcesses:
     def _start(self, *args) -> subprocess.Popen:
         log = open(Path(self._tmp.name) / f"process{len(self.processes)}.log", "wb")
         process = subprocess.Popen([sys.executable, "-m", "dask", *args], env=self.env, stdout=log,
-                                   stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+                                   stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, process_group=0)
         log.close()
         self.processes.append(process)
         return process

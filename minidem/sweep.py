@@ -408,9 +408,10 @@ def _run_locked(sweep, directory, progress, workers, executor, restart, echo) ->
     if executor is None:
         executor = executors.LocalProcesses(workers if workers is not None else sweep.workers)
     lost: dict[int, str] = {}
-    bar = _progress_bar(n, len(done), progress)
+    bar = _NoBar()
     started = wallclock.perf_counter()
     try:
+        bar = _progress_bar(n, len(done), progress)
         for position, row in executor.run(run_case, tasks, warm=list(first_of_law.values())):
             index = pending[position]
             if isinstance(row, executors.Lost):
