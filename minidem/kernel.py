@@ -14,8 +14,11 @@ removed by the compiler, so a single impact pays nothing for pairs or meshes):
     MESHES     triangle-mesh walls
     PARALLEL   particle loops run with prange; small scenes run serial and TRACK
                contact statistics (first touch, separation, peaks) and the probe
+    OPENING_KICK  the integrator (minidem.integrate): the fraction of the velocity
+               update made before the drift, 0.5 velocity Verlet, 1 symplectic Euler
 
-One step (velocity Verlet) is three particle loops:
+One step is three particle loops (velocity Verlet shown; symplectic Euler kicks the
+whole dt in kick_drift and nothing in finish):
 
     kick_drift      v += F dt/2m, x += v dt; counts particles that moved more than
                     half the skin since the last neighbour-list build
@@ -48,7 +51,7 @@ from minidem.contact import (
     rotate_history_into_plane,
     triangle_closest_point,
 )
-from minidem.integrate import drift, half_kick
+from minidem.integrate import drift, kick
 
 # >>> specialisation block (rewritten by minidem.simulation.compile_kernel)
 from minidem.builtin_laws.linear import linear_force as law_force  # noqa: E402
@@ -58,14 +61,23 @@ PAIRS = True
 CYLINDERS = True
 MESHES = True
 PARALLEL = False
+OPENING_KICK = 0.5
 # <<< specialisation block
 
 # contact statistics and the probe are written by whichever particle has the contact:
 # only race-free in a serial loop
 TRACK = not PARALLEL
 particle_range = numba.prange if PARALLEL else range
+# Serial kernels inline the per-step functions into ``advance`` (numba IR inlining): one
+# function is optimised and compiled once. Kept separate, each entry point is compiled
+# on its own and then linked into ``advance``, which optimises the linked copy again:
+# the cold compile of a single-impact kernel was 2.5x longer. Parallel loops (prange)
+# cannot be inlined into the serial step loop.
+INLINE = "never" if PARALLEL else "always"
 # the Verlet list (pairs, mesh candidates) must be rebuilt when particles move too far
 CHECK_DISPLACEMENT = PAIRS or MESHES
+# the part of the velocity update made after the force evaluation (0: symplectic Euler)
+CLOSING_KICK = 1.0 - OPENING_KICK
 
 # status codes (status[0]); status[1], status[2] name the particle and wall/partner
 OK, NON_FINITE_FORCE, TUNNELLED = 0, 1, 2
@@ -378,7 +390,7 @@ def pair_forces(i, position, velocity, angular_velocity, mass, radius, material,
     return fx, fy, fz, tx, ty, tz, count
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, error_model="numpy", inline=INLINE)
 def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking):
     """Gravity and the contacts owned by particles first..last-1; returns their count."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
@@ -418,7 +430,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
 CHUNK = 256
 
 
-@numba.njit(cache=True, parallel=PARALLEL)
+@numba.njit(cache=True, parallel=PARALLEL, inline=INLINE)
 def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking):
     """Gravity and every contact force on every particle, except the reactions of the
     pairs (i < p, p), which ``finish`` adds. Returns the number of contacts."""
@@ -430,9 +442,9 @@ def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt
     return active
 
 
-@numba.njit(cache=True, parallel=PARALLEL)
+@numba.njit(cache=True, parallel=PARALLEL, inline=INLINE)
 def finish(particles, pairs, dt):
-    """Add the pair reactions to each particle, then the closing half kick."""
+    """Add the pair reactions to each particle, then the closing kick."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     offsets, neighbours, history, pair_overlap, pair_force, pair_torque, reverse_offsets, reverse_entries = pairs
     for p in particle_range(position.shape[0]):
@@ -449,17 +461,19 @@ def finish(particles, pairs, dt):
                         torque[p, 0] += lever * pair_torque[e, 0]
                         torque[p, 1] += lever * pair_torque[e, 1]
                         torque[p, 2] += lever * pair_torque[e, 2]
-        half_kick(p, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, dt, SPIN)
+        if CLOSING_KICK > 0.0:
+            kick(p, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, CLOSING_KICK * dt,
+                 SPIN)
 
 
-@numba.njit(cache=True, parallel=PARALLEL)
+@numba.njit(cache=True, parallel=PARALLEL, inline=INLINE)
 def kick_drift(particles, dt, position_at_build, half_skin_squared):
-    """Opening half kick and drift; returns how many particles have moved more than
+    """Opening kick and drift; returns how many particles have moved more than
     half the skin since the neighbour list was built."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     moved_too_far = 0
     for p in particle_range(position.shape[0]):
-        half_kick(p, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, dt, SPIN)
+        kick(p, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, OPENING_KICK * dt, SPIN)
         drift(p, position, velocity, dt)
         if CHECK_DISPLACEMENT:
             dx = position[p, 0] - position_at_build[p, 0]
@@ -470,7 +484,7 @@ def kick_drift(particles, dt, position_at_build, half_skin_squared):
     return moved_too_far
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_at_build, half_skin_squared,
             dt, start_time, start_step, n_steps, resume, stop_at_separation, trace, tracking):
     """Advance up to n_steps; return (steps completed, neighbour list needs a rebuild).
@@ -500,9 +514,13 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
             stats[FIRST_CONTACT_TIME] = time  # to the step: only the serial loop interpolates
         if step < trace.shape[0]:
             trace[step, 0] = time
-            trace[step, 1:9] = probe[:8]
-            trace[step, 9:12] = velocity[0]
-            trace[step, 12:15] = angular_velocity[0]
+            # element by element: a slice assignment of an array compiles numba's general
+            # broadcasting copy, which cost several seconds of every cold compile
+            for c in range(8):
+                trace[step, 1 + c] = probe[c]
+            for c in range(3):
+                trace[step, 9 + c] = velocity[0, c]
+                trace[step, 12 + c] = angular_velocity[0, c]
         if stop_at_separation and active == 0 and stats[FIRST_CONTACT_TIME] >= 0.0:
             return step + 1, False
     return n_steps, False
