@@ -158,6 +158,11 @@ class State:
         self.law = (sim.pair_row, sim.constants, np.array(sim.law.vector_history_offsets, dtype=np.int64))
         plane_overlap = scene.radius[:, None] - np.einsum(
             "iwk,wk->iw", self.position[:, None, :] - scene.wall_point[None, :, :], scene.wall_normal)
+        if sim.start_time > 0.0:
+            # touching after an analytic flight: rounding may put the sphere a hair inside
+            # the wall, but the previous overlap must read 'not yet touching' for the
+            # first touch to be recorded
+            plane_overlap = np.minimum(plane_overlap, 0.0)
         self.planes = (scene.wall_point, scene.wall_normal, scene.wall_material,
                        np.zeros((n, scene.wall_point.shape[0], h)), plane_overlap)
         n_cylinders = walls.cylinder_base.shape[0]
@@ -250,7 +255,13 @@ class Simulation:
     def characteristic_speed(self) -> float:
         scene = self.scene
         if scene.impact is not None:
-            return scene.impact.speed * max(math.cos(math.radians(scene.impact.angle_deg)), 1e-3)
+            normal_speed = scene.impact.speed * max(math.cos(math.radians(scene.impact.angle_deg)), 1e-3)
+            # gravity towards the wall over impact.gap speeds the sphere up before it touches
+            n = scene.impact.normal
+            wall = scene.impact.wall
+            gap = max(float((scene.position[0] - scene.wall_point[wall]) @ n) - float(scene.radius[0]), 0.0)
+            towards = max(-float(scene.gravity @ n), 0.0)
+            return math.sqrt(normal_speed**2 + 2.0 * towards * gap)
         speeds = np.linalg.norm(scene.velocity, axis=1)
         extent = float(np.ptp(scene.position, axis=0).max() + 2 * scene.radius.max()) if scene.n_particles else 0.0
         fall = math.sqrt(2.0 * float(np.linalg.norm(scene.gravity)) * extent)
