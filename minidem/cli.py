@@ -210,7 +210,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="measure error against the reference solution and run time; "
                            "writes docs/benchmarks.md and docs/figures/")
     bench.add_argument("--quick", action="store_true", help="a small subset (CI smoke run)")
-    bench.add_argument("--only", action="append", choices=("single-impact", "work-precision", "sweep-timing"),
+    bench.add_argument("--only", action="append", choices=("single-impact", "work-precision", "model-only", "sweep-timing"),
                        help="run only this section (repeatable)")
     bench.add_argument("--docs", type=Path, default=None, help="docs directory to write (default: the project's)")
     bench.set_defaults(handler=command_bench)

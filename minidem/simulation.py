@@ -198,7 +198,10 @@ class State:
 class Simulation:
     """A scene bound to a compiled kernel, its constants and its time step."""
 
-    def __init__(self, scene: Scene, registry: laws.LawRegistry | None = None):
+    def __init__(self, scene: Scene, registry: laws.LawRegistry | None = None, kernel_flags: dict | None = None):
+        """``kernel_flags`` forces scene-shape flags on (e.g. {"PAIRS": True}) to measure
+        what modelling only what a scene needs saves (``minidem bench``); results are
+        the same, only the cost differs."""
         self.scene = scene
         if scene.walls is None:  # a Scene built by hand: planes only
             from minidem.walls import WallSet
@@ -216,8 +219,14 @@ class Simulation:
         self._prepare_constants()
         self.dt, self.dt_reason = self._choose_time_step()
         self._plan_flight()
-        self.kernel = compile_kernel(self.entry, self.spin, self.pairs, scene.walls.cylinder_base.shape[0] > 0,
-                                     scene.walls.triangles.shape[0] > 0, self.parallel, scene.integrator)
+        forced = kernel_flags or {}
+        self.spin = forced.get("SPIN", self.spin)
+        self.pairs = forced.get("PAIRS", self.pairs)
+        self.parallel = forced.get("PARALLEL", self.parallel)
+        self.kernel = compile_kernel(self.entry, self.spin, self.pairs,
+                                     forced.get("CYLINDERS", scene.walls.cylinder_base.shape[0] > 0),
+                                     forced.get("MESHES", scene.walls.triangles.shape[0] > 0), self.parallel,
+                                     scene.integrator)
         self.state: State | None = None
 
     # -- constants -------------------------------------------------------------
