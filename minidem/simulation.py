@@ -360,6 +360,8 @@ class Simulation:
             weight = (m * gravity / k_hertz) ** (2.0 / 3.0)
             overlap = max(impact, weight)
             normal, tangential, zeta = laws.law_stiffness(self.law, pair, named, r, m, overlap)
+            # name the overlap only when the stiffness depends on it (not for a linear spring)
+            depends = laws.law_stiffness(self.law, pair, named, r, m, 2.0 * overlap)[:2] != (normal, tangential)
             modes = [("normal", math.sqrt(normal / m), zeta)]
             if self.spin:
                 modes.append(("tangential", math.sqrt(3.5 * tangential / m), 0.0))
@@ -369,15 +371,15 @@ class Simulation:
                     best = limit
                     why = (f"{mode} mode of a {kind} contact, omega = {omega:.4g} rad/s"
                            + (f", damping ratio {damping:.3g}" if damping else "")
-                           + f", stiffness at overlap {overlap:.3g} m")
+                           + (f", stiffness at overlap {overlap:.3g} m" if depends else ""))
         return best, why
 
     def _choose_time_step(self) -> tuple[float, str]:
         scene = self.scene
         self.reference_contact_time = self.contact_time()
         self.stability, stability_why = self.stability_limit()
-        integrator = scene.integrator.replace("_", " ")
-        limit_text = f"stability limit of {integrator} {self.stability:.4g} s ({stability_why})"
+        limit_text = (f"stability limit {self.stability:.4g} s of run.integrator = \"{scene.integrator}\" "
+                      f"({stability_why})")
         if scene.dt is not None:
             if scene.dt <= self.stability:
                 return scene.dt, f"given in the scenario; {limit_text}"
