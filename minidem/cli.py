@@ -58,6 +58,8 @@ def command_run(args) -> int:
         print(f"minidem: {scene.source}: law '{sim.law.name}' ({sim.entry.distribution} {sim.entry.version}), "
               f"{scene.n_particles} particle(s), {scene.wall_point.shape[0]} wall(s)")
         print(f"  time step {sim.dt:.4g} s ({sim.dt_reason})")
+        if sim.start_time > 0.0:
+            print(f"  analytic flight to the first touch: the steps start at t = {sim.start_time:.6g} s")
     frames = None
     if scene.vtk:
         from minidem.output.vtk import SimulationFrames
