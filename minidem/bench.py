@@ -6,11 +6,16 @@ leaving the rest of the file alone) and PNG figures in ``docs/figures/``:
 - ``single-impact``: the engine's error in y1, y2, et against the independent reference
   solution (``minidem.reference``) at the default time step, for every paper law and angle,
   and the reference's own convergence (two tolerances);
-- ``work-precision``: error against run time per impact over a range of time steps, one
-  line per law; the observed order of convergence; the cheapest step count reaching
-  1e-3, 1e-4, 1e-6;
-- ``sweep-timing``: the whole paper sweep (6 laws x 30 angles) in a fresh process, cold
-  (empty MINIDEM_CACHE_DIR and NUMBA_CACHE_DIR: compilation included) and warm.
+- ``work-precision``: error against run time per impact over a range of time steps, for
+  every integrator (``minidem.integrate``), on the paper's impact (touching at t = 0) and
+  on the same impact released 1 mm from the wall; the observed order of convergence per
+  law and integrator; the cheapest integrator and step reaching 1e-3, 1e-4, 1e-6;
+- ``model-only``: what modelling only what a scene needs saves: the single impact with
+  the kernel specialised for it against kernels with spin, pairs, cylinders and meshes
+  forced on (same results, more work);
+- ``sweep-timing``: the whole paper sweep (6 laws x 30 angles) through ``minidem.sweep``
+  in a fresh process, cold (empty MINIDEM_CACHE_DIR and NUMBA_CACHE_DIR: compilation
+  included) and warm.
 
 The ``multi-particle`` section (the settle scene beside LIGGGHTS) is measured by
 ``minidem.bench_multi``; it runs only when asked for (``--only multi-particle``).
@@ -23,6 +28,7 @@ import json
 import math
 import os
 import platform
+import resource
 import shutil
 import statistics
 import subprocess
@@ -31,7 +37,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from minidem import reference
+from minidem import integrate, reference
 
 MEASURES = ("y1", "y2", "et")
 SCENARIO = Path(__file__).resolve().parent.parent / "scenarios" / "oblique.toml"
@@ -41,10 +47,24 @@ TARGET_ERROR = 1e-4  # issue 5: every paper case within 1e-4 of the reference at
 REFERENCE_RTOL = (1e-10, 1e-12)
 WP_ANGLES = (1.0, 5.0, 10.0, 20.0, 30.0, 45.0)
 WP_STEPS = (250, 500, 1000, 2000, 4000, 8000, 16000, 32000, 64000)
+TARGETS = (1e-3, 1e-4, 1e-6)
+# The approach case: the paper's sphere released this far from the wall (no gravity), so
+# the rebound is the paper's; with a stepped approach the first contact step straddles
+# first touch and the approach costs steps
+APPROACH_GAP = 1e-3  # m
+# (label, integrator, impact.gap): the lines of the work-precision diagrams
+SERIES = (
+    ("velocity Verlet", "velocity_verlet", 0.0),
+    ("symplectic Euler", "symplectic_euler", 0.0),
+    ("velocity Verlet, 1 mm gap", "velocity_verlet", APPROACH_GAP),
+    ("symplectic Euler, 1 mm gap", "symplectic_euler", APPROACH_GAP),
+    ("analytic flight, 1 mm gap", "analytic_flight", APPROACH_GAP),
+)
 QUICK = {"angles": (1.0, 5.0, 20.0, 60.0), "wp_angles": (5.0, 20.0), "wp_steps": (500, 2000, 8000),
-         "repeats": 2, "cold_repeats": 1, "warm_repeats": 2}
+         "repeats": 2, "cold_repeats": 1, "warm_repeats": 2, "sweep_workers": (1,)}
 FULL = {"angles": reference.PAPER_ANGLES_DEG, "wp_angles": WP_ANGLES, "wp_steps": WP_STEPS,
-        "repeats": 5, "cold_repeats": 2, "warm_repeats": 5}
+        "repeats": 3, "cold_repeats": 2, "warm_repeats": 5, "sweep_workers": (1, 2)}
+ALL_SECTIONS = ("single-impact", "work-precision", "model-only", "sweep-timing")
 
 
 # -- environment ----------------------------------------------------------------------
@@ -70,18 +90,24 @@ def stamp(command: str) -> str:
 
 # -- engine runs ----------------------------------------------------------------------
 def engine_case(law: str, angle_deg: float, steps_per_contact: int = DEFAULT_STEPS_PER_CONTACT,
-                repeats: int = 1) -> tuple[dict, float]:
+                repeats: int = 1, integrator: str = "velocity_verlet", gap: float = 0.0,
+                settings=(), kernel_flags: dict | None = None) -> tuple[dict, float]:
     """Summary of one engine impact and the median wall time of ``Simulation(scene).run()``
     (set-up included, kernel already compiled by a warm-up run)."""
     from minidem import analysis, scenario, simulation
 
-    scene = scenario.load_scene(SCENARIO, [f"impact.angle_deg={angle_deg!r}", f'contact.law="{law}"',
-                                           f"run.steps_per_contact={steps_per_contact}"])
-    simulation.Simulation(scene).run()  # warm-up: compile or load the kernel
+    overrides = [f"impact.angle_deg={angle_deg!r}", f'contact.law="{law}"',
+                 f"run.steps_per_contact={steps_per_contact}"]
+    if integrator != "velocity_verlet":
+        overrides.append(f'run.integrator="{integrator}"')
+    if gap:
+        overrides.append(f"impact.gap={gap!r}")
+    scene = scenario.load_scene(SCENARIO, overrides + list(settings))
+    simulation.Simulation(scene, kernel_flags=kernel_flags).run()  # warm-up: compile or load the kernel
     times, result = [], None
     for _ in range(max(repeats, 1)):
         started = time.perf_counter()
-        result = simulation.Simulation(scene).run()
+        result = simulation.Simulation(scene, kernel_flags=kernel_flags).run()
         times.append(time.perf_counter() - started)
     return analysis.summary(result), statistics.median(times)
 
@@ -142,94 +168,178 @@ def observed_order(curve: list[tuple[int, float]], floor: float = 1e-11) -> floa
     return sum((p[0] - mx) * (p[1] - my) for p in points) / sxx
 
 
-def work_precision(angles, steps_list, repeats, laws=reference.LAWS) -> dict:
-    """{law: [(steps, seconds per impact, {measure: max error over angles})]}."""
+def work_precision(angles, steps_list, repeats, laws=reference.LAWS, series=SERIES, echo=print) -> dict:
+    """{law: {series label: [(steps, seconds per impact, {measure: max error over angles})]}}."""
     out = {}
     for law in laws:
-        points = []
-        for steps in steps_list:
-            worst = {k: 0.0 for k in MEASURES}
-            seconds = []
-            for angle in angles:
-                summary, elapsed = engine_case(law, angle, steps, repeats)
-                seconds.append(elapsed)
-                for k, e in errors(summary, reference_solution(law, angle)).items():
-                    worst[k] = max(worst[k], e)
-            points.append((steps, statistics.median(seconds), worst))
-        out[law] = points
+        out[law] = {}
+        for label, integrator, gap in series:
+            points = []
+            for steps in steps_list:
+                worst = {k: 0.0 for k in MEASURES}
+                seconds = []
+                for angle in angles:
+                    summary, elapsed = engine_case(law, angle, steps, repeats, integrator, gap)
+                    seconds.append(elapsed)
+                    for k, e in errors(summary, reference_solution(law, angle)).items():
+                        worst[k] = max(worst[k], e)
+                points.append((steps, statistics.median(seconds), worst))
+            out[law][label] = points
+            echo(f"  {law}, {label}: " + ", ".join(f"{p[0]}: {max(p[2].values()):.1e}" for p in points))
     return out
 
 
+def cheapest(curves: dict, target: float):
+    """(series label, steps, seconds) of the cheapest measured point, over every series of
+    one law, whose error and every finer point's of its series are below ``target``."""
+    best = None
+    for label, points in curves.items():
+        n = needed_steps([(p[0], max(p[2].values())) for p in points], target)
+        if n is None:
+            continue
+        seconds = next(p[1] for p in points if p[0] == n)
+        if best is None or seconds < best[2]:
+            best = (label, n, seconds)
+    return best
+
+
+# (label, scenario settings, forced kernel flags): the same single impact through kernels
+# that model more than it needs
+MODEL_ONLY = (
+    ("hm, mu = 0.1: specialised (spin; no pairs, cylinders, meshes)", (), None),
+    ("hm, mu = 0.1: + pair loop and neighbour list", (), {"PAIRS": True}),
+    ("hm, mu = 0.1: + pairs, parallel loops on 1 thread (the multi-particle path)", ("run.threads=1",),
+     {"PAIRS": True, "PARALLEL": True}),
+    ("hm, mu = 0: specialised (no torque possible: no spin)", ("contact.friction=0.0",), None),
+    ("hm, mu = 0: + spin", ("contact.friction=0.0",), {"SPIN": True}),
+)
+
+
+def model_only(rounds: int, steps_per_contact: int = DEFAULT_STEPS_PER_CONTACT, angle: float = 30.0) -> list:
+    """[(label, steps, median wall s, median CPU s per impact, et)] for the MODEL_ONLY
+    kernels, measured in interleaved rounds (every kernel once per round) so that a
+    change in the machine's load hits them all alike."""
+    from minidem import analysis, scenario, simulation
+
+    cases = []
+    for label, settings, flags in MODEL_ONLY:
+        scene = scenario.load_scene(SCENARIO, [f"impact.angle_deg={angle!r}", 'contact.law="hm"',
+                                               f"run.steps_per_contact={steps_per_contact}", *settings])
+        result = simulation.Simulation(scene, kernel_flags=flags).run()  # compile or load, warm up
+        cases.append((label, scene, flags, analysis.summary(result)))
+    wall = {label: [] for label, *_ in cases}
+    cpu = {label: [] for label, *_ in cases}
+    for _ in range(rounds):
+        for label, scene, flags, _ in cases:
+            started, started_cpu = time.perf_counter(), time.process_time()
+            simulation.Simulation(scene, kernel_flags=flags).run()
+            wall[label].append(time.perf_counter() - started)
+            cpu[label].append(time.process_time() - started_cpu)
+    return [(label, summary["steps"], statistics.median(wall[label]), statistics.median(cpu[label]), summary["et"])
+            for label, _, _, summary in cases]
+
+
+# The paper sweep as a user runs it: the oblique scenario with a [sweep] table, through
+# minidem.sweep's public entry points (plan, run), default settings
 _SWEEP_SCRIPT = """
-import json, time
+import json, sys, tempfile, time
 started = time.perf_counter()
-from minidem import analysis, reference, scenario, simulation
+from minidem import reference, scenario, sweep
 from minidem.bench import SCENARIO
 imported = time.perf_counter()
-for law in reference.LAWS:
-    for angle in reference.PAPER_ANGLES_DEG:
-        scene = scenario.load_scene(SCENARIO, [f"impact.angle_deg={angle!r}", f'contact.law="{law}"'])
-        analysis.summary(simulation.Simulation(scene).run())
+data = scenario.read_toml(SCENARIO)
+data["sweep"] = {"cases": {"contact.law": list(reference.LAWS), "impact.angle_deg": list(reference.PAPER_ANGLES_DEG)},
+                 "figures": []}
+plan = sweep.plan(data, str(SCENARIO))
+with tempfile.TemporaryDirectory() as out:
+    rows = sweep.run(plan, out, progress=False, workers=int(sys.argv[1]))
+failed = [r["error"] for r in rows if r["error"]]
 done = time.perf_counter()
-print(json.dumps({"sweep_s": done - imported, "import_s": imported - started}))
+print(json.dumps({"sweep_s": done - imported, "import_s": imported - started, "cases": len(rows),
+                  "failed": failed[:3]}))
 """
 
 
-def timed_sweep(cache: Path) -> dict:
+def timed_sweep(cache: Path, workers: int = 1) -> dict:
     """One whole paper sweep (6 laws x 30 angles, default settings) in a fresh process
-    using ``cache`` for minidem's kernels and numba's cache."""
+    using ``cache`` for minidem's kernels and numba's cache; wall and CPU time (the
+    process and its workers: CPU time is what a busy shared machine inflates least)."""
     env = dict(os.environ, MINIDEM_CACHE_DIR=str(cache / "minidem"), NUMBA_CACHE_DIR=str(cache / "numba"))
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     started = time.perf_counter()
-    done = subprocess.run([sys.executable, "-c", _SWEEP_SCRIPT], env=env, capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-c", _SWEEP_SCRIPT, str(workers)], env=env, capture_output=True,
+                          text=True)
     process_s = time.perf_counter() - started
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if done.returncode != 0:
         raise RuntimeError(f"sweep process failed:\n{done.stderr[-2000:]}")
     timing = json.loads(done.stdout.strip().splitlines()[-1])
+    if timing["failed"] or timing["cases"] != len(reference.LAWS) * len(reference.PAPER_ANGLES_DEG):
+        raise RuntimeError(f"sweep cases failed: {timing['failed']}")
     timing["process_s"] = process_s
+    timing["cpu_s"] = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     return timing
 
 
-def sweep_timing(cold_repeats: int, warm_repeats: int) -> dict:
-    cold, warm = [], []
-    for _ in range(cold_repeats):
-        with tempfile.TemporaryDirectory(prefix="minidem-bench-") as tmp:
-            cold.append(timed_sweep(Path(tmp)))
-            if not warm:
-                for _ in range(warm_repeats):
-                    warm.append(timed_sweep(Path(tmp)))
-    median = lambda runs, key: statistics.median(r[key] for r in runs)  # noqa: E731
-    return {kind: {key: median(runs, key) for key in ("sweep_s", "import_s", "process_s")} | {"repeats": len(runs)}
-            for kind, runs in (("cold", cold), ("warm", warm))}
+def sweep_timing(cold_repeats: int, warm_repeats: int, workers=(1,)) -> dict:
+    """{workers: {"cold"/"warm": medians}}; each cold run in a new empty cache, the warm
+    runs reuse the first cold run's."""
+    out = {}
+    for w in workers:
+        cold, warm = [], []
+        for _ in range(cold_repeats):
+            with tempfile.TemporaryDirectory(prefix="minidem-bench-") as tmp:
+                cold.append(timed_sweep(Path(tmp), w))
+                if not warm:
+                    for _ in range(warm_repeats):
+                        warm.append(timed_sweep(Path(tmp), w))
+        median = lambda runs, key: statistics.median(r[key] for r in runs)  # noqa: E731
+        out[w] = {kind: {key: median(runs, key) for key in ("sweep_s", "import_s", "process_s", "cpu_s")}
+                  | {"repeats": len(runs)} for kind, runs in (("cold", cold), ("warm", warm))}
+    return out
 
 
 # -- output ---------------------------------------------------------------------------
 def plot_work_precision(wp: dict, path: Path, caption: str) -> None:
+    """One panel per law: run time per impact against the largest error in y1, y2, et,
+    one line per integrator (and start: touching, or 1 mm from the wall)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(15, 5.2), sharey=True)
-    for ax, measure in zip(axes, MEASURES):
-        for law, points in wp.items():
-            xs = [max(p[2][measure], 1e-16) for p in points]
+    laws = list(wp)
+    columns = 3
+    rows = (len(laws) + columns - 1) // columns
+    fig, axes = plt.subplots(rows, columns, figsize=(16, 5.0 * rows), sharey=True, squeeze=False)
+    styles = {"velocity Verlet": ("C0", "o-"), "symplectic Euler": ("C1", "s--"),
+              "velocity Verlet, 1 mm gap": ("C2", "o-"), "symplectic Euler, 1 mm gap": ("C3", "s--"),
+              "analytic flight, 1 mm gap": ("C4", "^-")}
+    for ax, law in zip(axes.flat, laws):
+        for label, points in wp[law].items():
+            color, style = styles.get(label, (None, "o-"))
+            xs = [max(max(p[2].values()), 1e-16) for p in points]
             ys = [p[1] * 1e3 for p in points]
-            ax.loglog(xs, ys, "o-", label=law)
+            ax.loglog(xs, ys, style, color=color, label=label, ms=4)
             for (steps, _, _), x, y in zip(points, xs, ys):
-                if steps in (points[0][0], DEFAULT_STEPS_PER_CONTACT, points[-1][0]):
+                if steps in (points[0][0], DEFAULT_STEPS_PER_CONTACT, points[-1][0]) and "Euler" not in label:
                     ax.annotate(str(steps), (x, y), fontsize=7, textcoords="offset points", xytext=(3, 3))
-        for target in (1e-3, 1e-4, 1e-6):
-            ax.axvline(target, color="0.8", lw=0.8, zorder=0)
-        ax.set_xlabel(f"max |error in {measure}| over the angles")
-        ax.set_title(measure)
+        for target in TARGETS:
+            ax.axvline(target, color="0.75", lw=0.8, zorder=0)
+        ax.set_title(law)
+        ax.set_xlabel("max |error| in y1, y2, et over the angles")
         ax.grid(True, which="major", alpha=0.3)
-    axes[0].set_ylabel("run time per impact (ms, median)")
-    axes[0].legend(fontsize=8)
-    fig.suptitle("Work-precision, velocity Verlet, points = steps per contact", fontsize=11)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("run time per impact (ms, median)")
+    for ax in axes.flat[len(laws):]:
+        ax.axis("off")
+    axes.flat[0].legend(fontsize=8)
+    fig.suptitle("Work-precision of the single impact: points = steps per contact (250 ... 64000); "
+                 "grey lines: 1e-3, 1e-4, 1e-6", fontsize=11)
     fig.text(0.01, 0.005, caption, fontsize=7, wrap=True)
-    fig.tight_layout(rect=(0, 0.05, 1, 0.95))
+    fig.tight_layout(rect=(0, 0.03, 1, 0.96))
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
@@ -266,71 +376,168 @@ def section_single_impact(rows: dict, angles, command: str) -> str:
     return "\n".join(lines)
 
 
-def section_work_precision(wp: dict, angles, figure: Path, command: str) -> str:
+def section_work_precision(wp: dict, angles, figure: Path, command: str, normal_contact_time: float) -> str:
     lines = [
         "## Work-precision (single impact)",
         "",
         stamp(command),
         "",
-        f"Error = largest absolute error over the angles {', '.join(f'{a:g}' for a in angles)} deg against the "
-        "reference; time = median wall time of one `Simulation(scene).run()` (set-up included, kernel compiled "
-        "beforehand). Integrator: the engine's default (velocity Verlet).",
+        f"Error = largest absolute error in y1, y2 or et over the angles {', '.join(f'{a:g}' for a in angles)} deg "
+        "against the reference; time = median wall time of one `Simulation(scene).run()` (set-up included, "
+        "kernel compiled beforehand). Integrators (`run.integrator`, see [time-step.md](time-step.md)): velocity "
+        "Verlet (default), symplectic Euler, and analytic flight (velocity Verlet in contact, the approach "
+        "solved in closed form up to the exact touch time). Two starts: the paper's (touching at t = 0) and "
+        f"the same impact released {APPROACH_GAP * 1e3:g} mm from the wall (`impact.gap`; no gravity, so the "
+        "rebound and the reference are the paper's). On the paper's start analytic flight *is* velocity Verlet "
+        "(same kernel, nothing to skip), so it is measured on the gap start only.",
         "",
         f"![work-precision]({figure.as_posix()})",
         "",
-        "Observed order of convergence (slope of log error against log dt, fitted above 1e-11):",
+        "Cheapest measured point reaching each target (every error of y1, y2, et at every angle below it, "
+        "and at every finer step of the same integrator): integrator, steps per contact, dt at normal "
+        f"incidence (contact time {normal_contact_time:.4g} s / steps), run time per impact. Where velocity "
+        "Verlet and symplectic Euler (identical errors) both reach a target, which of the two is named is "
+        "timing noise.",
         "",
-        "| law | y1 | y2 | et |",
-        "|---|---|---|---|",
     ]
-    for law, points in wp.items():
-        orders = [observed_order([(p[0], p[2][k]) for p in points]) for k in MEASURES]
-        lines.append(f"| {law} | " + " | ".join(f"{o:.2f}" for o in orders) + " |")
-    lines += ["", "Cheapest measured steps per contact (and run time per impact) with every error of y1, y2, "
-              "et below the target:", "", "| law | 1e-3 | 1e-4 | 1e-6 |", "|---|---|---|---|"]
-    for law, points in wp.items():
-        curve = [(p[0], max(p[2].values())) for p in points]
-        seconds = {p[0]: p[1] for p in points}
-        cells = []
-        for target in (1e-3, 1e-4, 1e-6):
-            n = needed_steps(curve, target)
-            cells.append(f"{n} ({seconds[n] * 1e3:.2f} ms)" if n else f"> {max(seconds)}")
-        lines.append(f"| {law} | " + " | ".join(cells) + " |")
-    lines += ["", "| law | steps | ms/impact | y1 | y2 | et |", "|---|---|---|---|---|---|"]
-    for law, points in wp.items():
-        for steps, seconds, worst in points:
-            lines.append(f"| {law} | {steps} | {seconds * 1e3:.3f} | "
-                         + " | ".join(_fmt(worst[k]) for k in MEASURES) + " |")
+    for title, gap in (("Paper's start (touching at t = 0)", 0.0),
+                       (f"Released {APPROACH_GAP * 1e3:g} mm from the wall", APPROACH_GAP)):
+        lines += [f"{title}:", "", "| law | 1e-3 | 1e-4 | 1e-6 |", "|---|---|---|---|"]
+        for law, curves in wp.items():
+            chosen = {label: points for label, points in curves.items()
+                      if dict((s[0], s[2]) for s in SERIES).get(label, 0.0) == gap}
+            cells = []
+            for target in TARGETS:
+                best = cheapest(chosen, target)
+                if best is None:
+                    cells.append(f"not reached (<= {max(p[0] for pts in chosen.values() for p in pts)} steps)")
+                else:
+                    label, n, seconds = best
+                    cells.append(f"{label.split(',')[0]}, {n} (dt {normal_contact_time / n:.2g} s), "
+                                 f"{seconds * 1e3:.2f} ms")
+            lines.append(f"| {law} | " + " | ".join(cells) + " |")
+        lines.append("")
+    lines += _integrator_findings(wp)
+    lines += ["Observed order of convergence (least-squares slope of log error against log dt over the "
+              "measured steps, errors above 1e-11):", "",
+              "| law | integrator | y1 | y2 | et |", "|---|---|---|---|---|"]
+    for law, curves in wp.items():
+        for label, points in curves.items():
+            orders = [observed_order([(p[0], p[2][k]) for p in points]) for k in MEASURES]
+            lines.append(f"| {law} | {label} | " + " | ".join(f"{o:.2f}" for o in orders) + " |")
+    lines += ["", "All points:", "", "| law | integrator | steps | ms/impact | y1 | y2 | et |",
+              "|---|---|---|---|---|---|---|"]
+    for law, curves in wp.items():
+        for label, points in curves.items():
+            for steps, seconds, worst in points:
+                lines.append(f"| {law} | {label} | {steps} | {seconds * 1e3:.3f} | "
+                             + " | ".join(_fmt(worst[k]) for k in MEASURES) + " |")
     lines.append("")
     return "\n".join(lines)
 
 
-def section_sweep(timing: dict, command: str) -> str:
-    cold, warm = timing["cold"], timing["warm"]
-    return "\n".join([
+def _integrator_findings(wp: dict) -> list[str]:
+    """Statements the measured points support, checked on every law and step."""
+    def same(a, b):
+        return all(p[0] == q[0] and p[2] == q[2] for p, q in zip(a, b))
+
+    def pairs(first, second):
+        return [(c[first], c[second]) for c in wp.values() if first in c and second in c]
+
+    out = []
+    checks = pairs("velocity Verlet", "symplectic Euler")
+    if checks:
+        verdict = "identical" if all(same(a, b) for a, b in checks) else "NOT identical"
+        out.append(f"* Symplectic Euler against velocity Verlet (paper start): errors {verdict} at every law and step "
+                   "(the same positions; no force before the first touch or after separation).")
+    checks = pairs("velocity Verlet", "analytic flight, 1 mm gap")
+    if checks:
+        verdict = "identical" if all(same(a, b) for a, b in checks) else "NOT identical"
+        out.append(f"* Analytic flight from {APPROACH_GAP * 1e3:g} mm against velocity Verlet touching at t = 0: "
+                   f"errors {verdict} at every law and step (the step grid starts at the exact touch).")
+    checks = pairs("velocity Verlet, 1 mm gap", "analytic flight, 1 mm gap")
+    if checks:
+        ratios, costs = [], []
+        for stepped, flown in checks:
+            for p, q in zip(stepped, flown):
+                e_p, e_q = max(p[2].values()), max(q[2].values())
+                if e_q > 1e-11:
+                    ratios.append(e_p / e_q)
+                costs.append(p[1] / q[1])
+        out.append(f"* Released {APPROACH_GAP * 1e3:g} mm from the wall, velocity Verlet stepping the approach "
+                   f"against analytic flight at the same steps per contact: error ratio median "
+                   f"{statistics.median(ratios):.3g} (range {min(ratios):.3g} - {max(ratios):.3g}), run time ratio "
+                   f"median {statistics.median(costs):.2f}.")
+    return out + [""] if out else out
+
+
+def section_model_only(rows: list, command: str) -> str:
+    base = {label.split(":")[0]: cpu for label, _, _, cpu, _ in rows if "specialised" in label}
+    lines = [
+        "## Model only what a scene needs",
+        "",
+        stamp(command),
+        "",
+        f"The paper's impact (hm, 30 deg, {DEFAULT_STEPS_PER_CONTACT} steps per contact) through the kernel "
+        "specialised for it and through kernels with scene-shape flags forced on "
+        "(`Simulation(scene, kernel_flags=...)`): the results are identical (et column), only the work "
+        "differs. A flag that is off removes its loops, arrays and branches from the compiled step "
+        "(`minidem/kernel.py`): the pair loop and the neighbour-list displacement check for one particle, the "
+        "angular velocity and torque updates when no force can exert torque (mu = 0 or a frictionless law), "
+        "the cylinder and mesh loops without such walls, the parallel regions (prange) for small scenes. "
+        "Medians over interleaved rounds of one `Simulation(scene).run()` each (set-up included); CPU = "
+        "process time, less inflated than wall time by other jobs on this shared machine.",
+        "",
+        "| kernel | steps | wall ms per impact | CPU ms per impact | CPU ns per step | CPU vs specialised | et |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for label, steps, wall, cpu, et in rows:
+        lines.append(f"| {label} | {steps} | {wall * 1e3:.2f} | {cpu * 1e3:.2f} | {cpu / steps * 1e9:.0f} | "
+                     f"{cpu / base.get(label.split(':')[0], cpu):.2f}x | {et:.12f} |")
+    lines.append("")
+    return "\n".join(lines)
+
+
+def section_sweep(timing: dict, command: str, load=None) -> str:
+    lines = [
         "## Paper sweep timing",
         "",
         stamp(command),
         "",
         f"The whole paper sweep ({len(reference.LAWS)} laws x {len(reference.PAPER_ANGLES_DEG)} angles, default "
-        "settings, one process, one case after another through `Simulation(scene).run()`), in a fresh Python "
-        "process. Cold: empty `MINIDEM_CACHE_DIR` and `NUMBA_CACHE_DIR` (every kernel compiled); warm: the same "
-        "caches filled by the cold run. Medians.",
+        "settings) as `minidem run` runs a `[sweep]` scenario: `minidem.sweep.plan` and `minidem.sweep.run` "
+        "(workers = worker processes), in a fresh Python process. Cold: empty `MINIDEM_CACHE_DIR` and "
+        "`NUMBA_CACHE_DIR` (every kernel compiled: one per law); warm: the same caches filled by the cold run. "
+        "Medians. CPU = user + system time of the process and its workers, the figure a busy shared machine "
+        "inflates least (the wall times below were measured with other jobs running; see the load average).",
         "",
-        "| | sweep (s) | imports (s) | whole process (s) | runs |",
-        "|---|---|---|---|---|",
-        f"| cold | {cold['sweep_s']:.2f} | {cold['import_s']:.2f} | {cold['process_s']:.2f} | {cold['repeats']} |",
-        f"| warm | {warm['sweep_s']:.2f} | {warm['import_s']:.2f} | {warm['process_s']:.2f} | {warm['repeats']} |",
-        "",
-        f"Targets (issue 5): warm under 2 s ({'met' if warm['sweep_s'] < 2.0 else 'NOT met'} by the sweep), cold "
-        f"under 30 s ({'met' if cold['process_s'] < 30.0 else 'NOT met'} by the whole process).",
-        "",
-    ])
+        "| workers | | sweep (s) | imports (s) | whole process (s) | CPU (s) | runs |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for workers, runs in timing.items():
+        for kind in ("cold", "warm"):
+            r = runs[kind]
+            lines.append(f"| {workers} | {kind} | {r['sweep_s']:.2f} | {r['import_s']:.2f} | {r['process_s']:.2f} | "
+                         f"{r['cpu_s']:.2f} | {r['repeats']} |")
+    best_warm = min(r["warm"]["sweep_s"] for r in timing.values())
+    best_cold = min(r["cold"]["process_s"] for r in timing.values())
+    cpu_warm = min(r["warm"]["cpu_s"] for r in timing.values())
+    cpu_cold = min(r["cold"]["cpu_s"] for r in timing.values())
+    load = os.getloadavg() if load is None else load
+    lines += ["", f"Load average when the sweep section finished: {', '.join(f'{x:.1f}' for x in load)} "
+              f"on {os.cpu_count()} CPUs.", "",
+              f"Targets (issue 5), wall time: warm under 2 s ({'met' if best_warm < 2.0 else 'NOT met'}: "
+              f"{best_warm:.2f} s), cold under 30 s ({'met' if best_cold < 30.0 else 'NOT met'}: {best_cold:.2f} s, "
+              f"whole process). CPU time, what the wall time is on an idle machine for the serial compile and "
+              f"runs: warm {cpu_warm:.2f} s ({'under' if cpu_warm < 2.0 else 'over'} 2 s), cold {cpu_cold:.2f} s "
+              f"({'under' if cpu_cold < 30.0 else 'over'} 30 s).", ""]
+    return "\n".join(lines)
 
 
-SECTION_ORDER = ("single-impact", "work-precision", "sweep-timing", "multi-particle")
+SECTION_ORDER = ("single-impact", "work-precision", "model-only", "sweep-timing", "multi-particle")
 _HEADINGS = {"single-impact": "## Single impact: engine error against the reference",
              "work-precision": "## Work-precision (single impact)",
+             "model-only": "## Model only what a scene needs",
              "sweep-timing": "## Paper sweep timing",
              "multi-particle": "## Multi-particle throughput"}
 
@@ -354,11 +561,10 @@ def update_sections(path: Path, sections: dict[str, str]) -> None:
     atomic_write(path, text)
 
 
-def run(quick: bool = False, docs: Path = DOCS, sections=("single-impact", "work-precision", "sweep-timing"),
-        echo=print) -> dict:
+def run(quick: bool = False, docs: Path = DOCS, sections=ALL_SECTIONS, echo=print) -> dict:
     settings = QUICK if quick else FULL
     command = "minidem bench" + (" --quick" if quick else "")
-    if sections != ("single-impact", "work-precision", "sweep-timing"):
+    if tuple(sections) != ALL_SECTIONS:
         command += "".join(f" --only {s}" for s in sections)
     results, texts = {}, {}
     if "single-impact" in sections:
@@ -367,12 +573,21 @@ def run(quick: bool = False, docs: Path = DOCS, sections=("single-impact", "work
         results["single_impact"] = rows
         texts["single-impact"] = section_single_impact(rows, settings["angles"], command)
     if "work-precision" in sections:
-        echo(f"bench: work-precision, steps per contact {settings['wp_steps']}")
-        wp = work_precision(settings["wp_angles"], settings["wp_steps"], settings["repeats"])
+        echo(f"bench: work-precision, steps per contact {settings['wp_steps']}, {len(SERIES)} integrator lines")
+        wp = work_precision(settings["wp_angles"], settings["wp_steps"], settings["repeats"], echo=echo)
         results["work_precision"] = wp
         figure = Path("figures") / "work_precision.png"
         plot_work_precision(wp, docs / figure, stamp(command))
-        texts["work-precision"] = section_work_precision(wp, settings["wp_angles"], figure, command)
+        impact = reference.Impact(angle_deg=0.0)
+        from minidem.laws import hertz_contact_time
+
+        normal_tc = hertz_contact_time(impact.effective_modulus, impact.radius, impact.mass, impact.speed)
+        texts["work-precision"] = section_work_precision(wp, settings["wp_angles"], figure, command, normal_tc)
+    if "model-only" in sections:
+        echo("bench: model only what a scene needs (forced kernel flags)")
+        rows = model_only(settings["repeats"] * 3)
+        results["model_only"] = rows
+        texts["model-only"] = section_model_only(rows, command)
     if "multi-particle" in sections:
         from minidem import bench_multi
 
@@ -380,7 +595,7 @@ def run(quick: bool = False, docs: Path = DOCS, sections=("single-impact", "work
         texts["multi-particle"] = bench_multi.run(1 if quick else 3, command, stamp, echo)
     if "sweep-timing" in sections:
         echo("bench: paper sweep, cold and warm (fresh processes)")
-        timing = sweep_timing(settings["cold_repeats"], settings["warm_repeats"])
+        timing = sweep_timing(settings["cold_repeats"], settings["warm_repeats"], settings["sweep_workers"])
         results["sweep_timing"] = timing
         texts["sweep-timing"] = section_sweep(timing, command)
     update_sections(docs / "benchmarks.md", texts)
@@ -391,6 +606,5 @@ def run(quick: bool = False, docs: Path = DOCS, sections=("single-impact", "work
 
 
 def command(args) -> int:
-    run(quick=args.quick, docs=args.docs or DOCS, sections=tuple(args.only) if args.only else
-        ("single-impact", "work-precision", "sweep-timing"))
+    run(quick=args.quick, docs=args.docs or DOCS, sections=tuple(args.only) if args.only else ALL_SECTIONS)
     return 0

@@ -76,6 +76,8 @@ def command_run(args) -> int:
     # files a killed process left half-way through an atomic write (never under a final name)
     checkpoint.remove_stale_temporaries(directory)
     (directory / checkpoint.LAST_GOOD).unlink(missing_ok=True)  # from an earlier failed run
+    if not args.quiet and sim.start_time > 0.0:
+        print(f"  analytic flight to the first touch: the steps start at t = {sim.start_time:.6g} s")
     frames = None
     if scene.vtk:
         from minidem.output.vtk import SimulationFrames
@@ -250,8 +252,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="measure error against the reference solution and run time; "
                            "writes docs/benchmarks.md and docs/figures/")
     bench.add_argument("--quick", action="store_true", help="a small subset (CI smoke run)")
-    bench.add_argument("--only", action="append", choices=("single-impact", "work-precision", "sweep-timing",
-                                                             "multi-particle"),
+    bench.add_argument("--only", action="append", choices=("single-impact", "work-precision", "model-only",
+                                                             "sweep-timing", "multi-particle"),
                        help="run only this section (repeatable); multi-particle runs only when named")
     bench.add_argument("--docs", type=Path, default=None, help="docs directory to write (default: the project's)")
     bench.set_defaults(handler=command_bench)

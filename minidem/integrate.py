@@ -1,26 +1,46 @@
-"""Time-integration pieces of the compiled step (velocity Verlet, kick-drift-kick).
+"""Time-integration pieces of the compiled step, and the integrators a scenario can choose.
 
-The contact forces at step n+1 are evaluated from positions x(n+1) and the half-step
-velocities v(n+1/2) that carried the particles there, so the tangential displacement
-increment v_t(n+1/2) dt is exactly the relative motion of the contact points over the
-step (the LAMMPS convention).
+Every integrator is the same kick-drift-kick step with a different split of the
+velocity update around the force evaluation (``OPENING_KICK``, a kernel specialisation
+constant: the fraction of dt applied before the drift, the rest after the forces):
 
-Both functions act on one particle so the kernel can fuse them with its other
+    velocity_verlet   0.5: v += F dt/2m, x += v dt, F(x), v += F dt/2m (second order)
+    symplectic_euler  1.0: v += F dt/m, x += v dt, F(x) (the velocity it reports lags
+                      half a step: first order in the velocity, same positions)
+    analytic_flight   velocity Verlet in contact; the free flight before the first
+                      contact (ballistic, under gravity) is solved in closed form up to
+                      the exact touch time and the step grid starts there, so no step
+                      straddles first touch and no step is spent in the approach
+                      (``flight_to_first_touch``; one particle and plane walls)
+
+The contact forces at step n+1 are evaluated from positions x(n+1) and the velocities
+that carried the particles there, so the tangential displacement increment v_t dt is
+exactly the relative motion of the contact points over the step (the LAMMPS
+convention), and the overlap changes linearly within the step: the mid-step overlap
+d - dd/2 the Hertz-Mindlin laws use for their stiffness is exact under every integrator.
+
+The kick and drift act on one particle so the kernel can fuse them with its other
 per-particle work in a single (parallel) loop.
 """
 
+import math
+
 import numba
+
+INTEGRATORS = ("velocity_verlet", "symplectic_euler", "analytic_flight")
+# fraction of the velocity update made before the drift, per integrator
+OPENING_KICK = {"velocity_verlet": 0.5, "symplectic_euler": 1.0, "analytic_flight": 0.5}
 
 
 @numba.njit(cache=True, inline="always")
-def half_kick(p, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, dt, spin):
-    half = 0.5 * dt
-    scale = half * inverse_mass[p]
+def kick(p, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, duration, spin):
+    """v += F duration / m (and the spin, when the scene has torques)."""
+    scale = duration * inverse_mass[p]
     velocity[p, 0] += scale * force[p, 0]
     velocity[p, 1] += scale * force[p, 1]
     velocity[p, 2] += scale * force[p, 2]
     if spin:
-        scale = half * inverse_inertia[p]
+        scale = duration * inverse_inertia[p]
         angular_velocity[p, 0] += scale * torque[p, 0]
         angular_velocity[p, 1] += scale * torque[p, 1]
         angular_velocity[p, 2] += scale * torque[p, 2]
@@ -31,3 +51,44 @@ def drift(p, position, velocity, dt):
     position[p, 0] += dt * velocity[p, 0]
     position[p, 1] += dt * velocity[p, 1]
     position[p, 2] += dt * velocity[p, 2]
+
+
+def time_to_touch(gap: float, approach_speed: float, approach_acceleration: float) -> float:
+    """First t >= 0 at which gap - c t - b t^2/2 = 0 (c approach speed, b approach
+    acceleration, both along the wall normal towards the wall), or inf.
+
+    Written as 2 s / (c + sqrt(c^2 + 2 b s)), which has no cancellation when c > 0.
+    """
+    if gap <= 0.0:
+        return 0.0
+    discriminant = approach_speed * approach_speed + 2.0 * approach_acceleration * gap
+    if discriminant < 0.0:
+        return math.inf  # turns back before reaching the wall
+    denominator = approach_speed + math.sqrt(discriminant)
+    return 2.0 * gap / denominator if denominator > 0.0 else math.inf
+
+
+def flight_to_first_touch(position, velocity, radius, wall_point, wall_normal, gravity):
+    """Closed-form ballistic flight of one sphere to its first touch of a plane.
+
+    Returns (flight time, position, velocity, index of the wall touched) at the touch
+    instant, or None when the sphere touches no plane (or already touches one). The
+    position is corrected along the wall normal so the overlap there is exactly zero,
+    not a rounding error either side of it.
+    """
+    best, wall = math.inf, -1
+    for w in range(wall_normal.shape[0]):
+        normal = wall_normal[w]
+        gap = float((position - wall_point[w]) @ normal) - radius
+        if gap <= 0.0:
+            return None  # in contact at the start: nothing to skip
+        t = time_to_touch(gap, -float(velocity @ normal), -float(gravity @ normal))
+        if t < best:
+            best, wall = t, w
+    if wall < 0 or not math.isfinite(best):
+        return None
+    moved = position + velocity * best + 0.5 * gravity * best * best
+    normal = wall_normal[wall]
+    moved = moved + (radius - float((moved - wall_point[wall]) @ normal)) * normal
+    return best, moved, velocity + gravity * best, wall
+

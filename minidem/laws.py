@@ -152,6 +152,11 @@ class ContactLaw:
     frictional    False when the law can never produce a tangential force; the engine
                   then drops spin from the compiled step. A law with a ``friction``
                   parameter is also treated as frictionless when friction = 0.
+    stiffness     optional ``stiffness(pair, constants: dict, effective_radius,
+                  effective_mass, normal_overlap) -> (kn, kt, damping_ratio)``: the
+                  largest normal and tangential tangent stiffnesses (N/m) at that overlap
+                  and the normal damping ratio, for the time-step stability limit
+                  (docs/time-step.md); Hertz-Mindlin's undamped values are used when absent
     """
 
     name: str
@@ -165,6 +170,7 @@ class ContactLaw:
     aliases: tuple[str, ...] = ()
     frictional: bool = True
     reference: str = ""
+    stiffness: Callable | None = None
 
     @property
     def history_size(self) -> int:
@@ -408,3 +414,20 @@ def law_contact_time(law: ContactLaw, pair: ContactPair, constants: Mapping[str,
     if law.contact_time is not None:
         return float(law.contact_time(pair, constants, effective_radius, effective_mass, normal_speed))
     return hertz_contact_time(pair.effective_modulus, effective_radius, effective_mass, normal_speed)
+
+
+def hertz_mindlin_stiffness(pair: ContactPair, effective_radius: float, normal_overlap: float) -> tuple[float, float]:
+    """Tangent stiffnesses of Hertz-Mindlin at an overlap: dFn/dd = 2 E* a and the
+    no-slip kt = 8 G* a, a = sqrt(R* d) (eqs 15-18)."""
+    a = math.sqrt(effective_radius * normal_overlap)
+    return 2.0 * pair.effective_modulus * a, 8.0 * pair.effective_shear_modulus * a
+
+
+def law_stiffness(law: ContactLaw, pair: ContactPair, constants: Mapping[str, float], effective_radius: float,
+                  effective_mass: float, normal_overlap: float) -> tuple[float, float, float]:
+    """(kn, kt, damping ratio) of a law's contact at an overlap, for the stability limit:
+    the law's own ``stiffness`` or undamped Hertz-Mindlin."""
+    if law.stiffness is not None:
+        kn, kt, zeta = law.stiffness(pair, constants, effective_radius, effective_mass, normal_overlap)
+        return float(kn), float(kt), float(zeta)
+    return (*hertz_mindlin_stiffness(pair, effective_radius, normal_overlap), 0.0)

@@ -119,18 +119,27 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
         Key("radius", "float", REQUIRED, "m", "sphere radius", low=0.0, low_open=True),
         Key("speed", "float", REQUIRED, "m/s", "impact speed Vi", low=0.0, low_open=True),
         Key("angle_deg", "float", 0.0, "deg", "impact angle from the wall normal", low=0.0, high=90.0),
+        Key("gap", "float", 0.0, "m", "distance from the sphere to the wall at t = 0, travelled at the impact "
+            "velocity before first touch (0: touching at t = 0)", low=0.0),
         Key("wall", "int", 0, "-", "index of the wall hit (in the order of [[walls]])", low=0),
         Key("spin", "float", 0.0, "rad/s", "initial spin about the axis n x t (n wall normal, t "
             "tangential direction of travel)"),
         Key("tangent", "vec3", None, "-", "tangential direction of travel; default: the first of x, y, z "
             "not parallel to the normal, made orthogonal to it"),
-    ), "One sphere placed touching a wall (zero overlap at t = 0) with velocity Vi at angle_deg: "
+    ), "One sphere placed touching a wall (zero overlap at t = 0, or `gap` away) with velocity Vi at angle_deg: "
        "the paper's oblique impact. Rebound measures (en, et, x, y1, y2) are reported for it."),
     "run": ("table", (
         Key("dt", "float_or_auto", "auto", "s", "time step, or \"auto\": contact_time / steps_per_contact",
             low=0.0, low_open=True),
         Key("steps_per_contact", "int", 4000, "-", "steps per normal-impact duration when dt = \"auto\"",
             low=20),
+        Key("integrator", "choice", "velocity_verlet", "", "\"velocity_verlet\" (second order); "
+            "\"symplectic_euler\" (v += F dt/m, then x += v dt); \"analytic_flight\" (velocity Verlet, with "
+            "the free flight before the first contact solved in closed form and the steps starting at the "
+            "exact touch time; one particle and plane walls). See docs/time-step.md",
+            choices=("velocity_verlet", "symplectic_euler", "analytic_flight")),
+        Key("allow_unstable_dt", "bool", False, "", "accept a run.dt above the integrator's stability limit "
+            "(refused otherwise, with the limit and a suggested dt; see docs/time-step.md)"),
         Key("stop", "choice", "separation", "", "\"separation\": stop when the last contact ends (the "
             "particle loops then run serial, which records the separation instant within the step); "
             "\"time\": run to end_time (more than 16 particles: parallel loops)", choices=("separation", "time")),
@@ -234,6 +243,8 @@ class Scene:
     checkpoint_interval: float | None = None
     checkpoint_wall_interval: float | None = None
     fill_ranges: list = dataclasses.field(default_factory=list)  # (first, stop) particle index per [[fill]]
+    integrator: str = "velocity_verlet"
+    allow_unstable_dt: bool = False
 
     @property
     def n_particles(self) -> int:
@@ -517,7 +528,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         if isinstance(wall, int) and not 0 <= wall < len(wall_normal):
             errors.add("impact.wall", f"wall index {wall} does not exist: the scenario has "
                        f"{len(wall_normal)} valid wall(s) (an [[walls]] plane is needed)")
-        elif all(isinstance(values.get(k), float) for k in ("radius", "speed", "angle_deg", "spin")):
+        elif all(isinstance(values.get(k), float) for k in ("radius", "speed", "angle_deg", "spin", "gap")):
             if values["angle_deg"] >= 90.0:
                 errors.add("impact.angle_deg", "must be < 90 deg (90 is parallel to the wall: no impact)")
             normal = wall_normal[wall]
@@ -525,7 +536,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
             if tangent is not None:
                 theta = math.radians(values["angle_deg"])
                 # index 0: the impact sphere is particle 0, the one the rebound is measured on
-                position.insert(0, wall_point[wall] + values["radius"] * normal)
+                position.insert(0, wall_point[wall] + (values["radius"] + values["gap"]) * normal)
                 velocity.insert(0, values["speed"] * (math.sin(theta) * tangent - math.cos(theta) * normal))
                 spin.insert(0, values["spin"] * np.cross(normal, tangent))
                 radius.insert(0, values["radius"])
@@ -567,6 +578,8 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         wall_material=np.array(wall_material, dtype=np.int64),
         dt=run["dt"],
         steps_per_contact=run["steps_per_contact"],
+        integrator=run["integrator"],
+        allow_unstable_dt=run["allow_unstable_dt"],
         stop=run["stop"],
         end_time=run["end_time"],
         gravity=run["gravity"],

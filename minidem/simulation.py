@@ -22,7 +22,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from minidem import __version__, kernel, laws, neighbours
+from minidem import __version__, integrate, kernel, laws, neighbours
 from minidem.scenario import Scene, ScenarioError
 
 _TEMPLATE = Path(kernel.__file__)
@@ -37,6 +37,11 @@ _ENGINE_SOURCES = ("kernel.py", "contact.py", "integrate.py")
 PARALLEL_ABOVE = 16
 # scene-shape flags of the kernel specialisation block, in order
 KERNEL_FLAGS = ("SPIN", "PAIRS", "CYLINDERS", "MESHES", "PARALLEL")
+# Automatic time step (docs/time-step.md): the smallest of the accuracy step (contact
+# time / steps_per_contact) and these fractions of the Rayleigh time and of the
+# integrator's stability limit
+RAYLEIGH_FRACTION = 0.2
+STABILITY_SAFETY = 0.2
 
 
 # particle-steps between two copies of the last good state: copying one particle's
@@ -72,10 +77,12 @@ _LOADED: dict[str, object] = {}
 
 
 def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, cylinders: bool = False,
-                   meshes: bool = False, parallel: bool = False):
-    """Return the kernel module specialised for ``entry.law`` and a scene shape (compiled
-    lazily, cached on disk)."""
+                   meshes: bool = False, parallel: bool = False, integrator: str = "velocity_verlet"):
+    """Return the kernel module specialised for ``entry.law``, a scene shape and an
+    integrator (compiled lazily, cached on disk). Integrators with the same kick split
+    (velocity Verlet and analytic flight) share one kernel."""
     flags = dict(zip(KERNEL_FLAGS, (bool(spin), bool(pairs), bool(cylinders), bool(meshes), bool(parallel))))
+    flags["OPENING_KICK"] = integrate.OPENING_KICK[integrator]
     law = entry.law
     func = law.force.py_func
     engine = hashlib.sha256()
@@ -162,8 +169,9 @@ class State:
     def __init__(self, sim: "Simulation"):
         scene, walls = sim.scene, sim.scene.walls
         n, h = scene.n_particles, sim.law.history_size
-        self.position = scene.position.copy()
-        self.velocity = scene.velocity.copy()
+        # the state at sim.start_time (t = 0, or first touch after an analytic flight)
+        self.position = sim.start_position.copy()
+        self.velocity = sim.start_velocity.copy()
         self.angular_velocity = scene.angular_velocity.copy()
         self.force = np.zeros((n, 3))
         self.torque = np.zeros((n, 3))
@@ -173,6 +181,11 @@ class State:
         self.law = (sim.pair_row, sim.constants)
         plane_overlap = scene.radius[:, None] - np.einsum(
             "iwk,wk->iw", self.position[:, None, :] - scene.wall_point[None, :, :], scene.wall_normal)
+        if sim.start_time > 0.0:
+            # touching after an analytic flight: rounding may put the sphere a hair inside
+            # the wall, but the previous overlap must read 'not yet touching' for the
+            # first touch to be recorded
+            plane_overlap = np.minimum(plane_overlap, 0.0)
         self.planes = (scene.wall_point, scene.wall_normal, scene.wall_material,
                        np.zeros((n, scene.wall_point.shape[0], h)), plane_overlap)
         n_cylinders = walls.cylinder_base.shape[0]
@@ -246,7 +259,10 @@ class State:
 class Simulation:
     """A scene bound to a compiled kernel, its constants and its time step."""
 
-    def __init__(self, scene: Scene, registry: laws.LawRegistry | None = None):
+    def __init__(self, scene: Scene, registry: laws.LawRegistry | None = None, kernel_flags: dict | None = None):
+        """``kernel_flags`` forces scene-shape flags on (e.g. {"PAIRS": True}) to measure
+        what modelling only what a scene needs saves (``minidem bench``); results are
+        the same, only the cost differs."""
         self.scene = scene
         if scene.walls is None:  # a Scene built by hand: planes only
             from minidem.walls import WallSet
@@ -263,8 +279,15 @@ class Simulation:
         self.skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
         self._prepare_constants()
         self.dt, self.dt_reason = self._choose_time_step()
-        self.kernel = compile_kernel(self.entry, self.spin, self.pairs, scene.walls.cylinder_base.shape[0] > 0,
-                                     scene.walls.triangles.shape[0] > 0, self.parallel)
+        self._plan_flight()
+        forced = kernel_flags or {}
+        self.spin = forced.get("SPIN", self.spin)
+        self.pairs = forced.get("PAIRS", self.pairs)
+        self.parallel = forced.get("PARALLEL", self.parallel)
+        self.kernel = compile_kernel(self.entry, self.spin, self.pairs,
+                                     forced.get("CYLINDERS", scene.walls.cylinder_base.shape[0] > 0),
+                                     forced.get("MESHES", scene.walls.triangles.shape[0] > 0), self.parallel,
+                                     scene.integrator)
         self.state: State | None = None
         self.interrupted_at: tuple[float, Path] | None = None  # (time s, checkpoint) after Ctrl-C
 
@@ -303,7 +326,13 @@ class Simulation:
     def characteristic_speed(self) -> float:
         scene = self.scene
         if scene.impact is not None:
-            return scene.impact.speed * max(math.cos(math.radians(scene.impact.angle_deg)), 1e-3)
+            normal_speed = scene.impact.speed * max(math.cos(math.radians(scene.impact.angle_deg)), 1e-3)
+            # gravity towards the wall over impact.gap speeds the sphere up before it touches
+            n = scene.impact.normal
+            wall = scene.impact.wall
+            gap = max(float((scene.position[0] - scene.wall_point[wall]) @ n) - float(scene.radius[0]), 0.0)
+            towards = max(-float(scene.gravity @ n), 0.0)
+            return math.sqrt(normal_speed**2 + 2.0 * towards * gap)
         speeds = np.linalg.norm(scene.velocity, axis=1)
         extent = float(np.ptp(scene.position, axis=0).max() + 2 * scene.radius.max()) if scene.n_particles else 0.0
         fall = math.sqrt(2.0 * float(np.linalg.norm(scene.gravity)) * extent)
@@ -332,17 +361,142 @@ class Simulation:
                                                        r / 2, m / 2, speed))
         return min(times) if times else math.inf
 
+    def contact_kinds(self):
+        """(pair, named constants, effective radius, effective mass) of every kind of contact
+        the scene can have: the smallest particle of each material against each wall
+        material and against each particle material (two equal spheres: R/2, m/2)."""
+        scene, walls = self.scene, self.scene.walls
+        wall_materials = set(walls.plane_material.tolist()) | set(walls.cylinder_material.tolist()) \
+            | set(walls.triangle_material.tolist())
+        kinds = []
+        for material in np.unique(scene.particle_material):
+            members = scene.particle_material == material
+            smallest = np.argmin(np.where(members, scene.radius, np.inf))
+            r, m = float(scene.radius[smallest]), float(scene.mass[smallest])
+            for other in sorted(wall_materials):
+                key = (min(material, other), max(material, other))
+                kinds.append((self.pairs_[key], self.constants_by_pair[key], r, m, "sphere-wall"))
+            if scene.n_particles > 1:
+                for other in np.unique(scene.particle_material):
+                    key = (min(material, other), max(material, other))
+                    kinds.append((self.pairs_[key], self.constants_by_pair[key], r / 2, m / 2, "sphere-sphere"))
+        return kinds
+
+    def contact_time(self) -> float:
+        """Shortest normal-impact duration among the contact kinds the scene can have."""
+        speed = self.characteristic_speed()
+        times = [laws.law_contact_time(self.law, pair, named, r, m, speed)
+                 for pair, named, r, m, _ in self.contact_kinds()]
+        return min(times) if times else math.inf
+
+    def rayleigh_time(self) -> float:
+        """Rayleigh-wave crossing time of the smallest particle of each material,
+        pi R sqrt(rho/G) / (0.1631 nu + 0.8766), the usual DEM time-step scale."""
+        scene, times = self.scene, []
+        for material in np.unique(scene.particle_material):
+            mat = scene.materials[material]
+            radius = float(scene.radius[scene.particle_material == material].min())
+            shear = mat.youngs_modulus / (2.0 * (1.0 + mat.poisson_ratio))
+            times.append(math.pi * radius * math.sqrt(mat.density / shear) / (0.1631 * mat.poisson_ratio + 0.8766))
+        return min(times) if times else math.inf
+
+    def stability_limit(self) -> tuple[float, str]:
+        """Largest stable dt of the integrator on the scene's stiffest contact mode, and why.
+
+        Velocity Verlet and symplectic Euler (the same positions) are stable on a linear
+        oscillator of frequency omega for dt < 2/omega, or (2/omega)(sqrt(1 + zeta^2) - zeta)
+        with damping ratio zeta. Each contact kind has a normal mode, omega^2 = kn/m*, and
+        when it can carry friction a tangential mode in which the contact point moves
+        against both the translation and the rotation of the sphere(s),
+        omega^2 = kt (1/m* + R^2/I) = 3.5 kt/m* for solid spheres (I = 2/5 m R^2). The
+        stiffnesses are the law's (``ContactLaw.stiffness``) at the largest overlap the
+        scene should reach: Hertz's at the characteristic impact speed (eq 12) or under
+        the particle's weight, whichever is larger.
+        """
+        speed = self.characteristic_speed()
+        gravity = float(np.linalg.norm(self.scene.gravity))
+        best, why = math.inf, "no contact possible"
+        for pair, named, r, m, kind in self.contact_kinds():
+            k_hertz = 4.0 / 3.0 * pair.effective_modulus * math.sqrt(r)
+            impact = (15.0 * m * speed**2 / (16.0 * pair.effective_modulus * math.sqrt(r))) ** 0.4
+            weight = (m * gravity / k_hertz) ** (2.0 / 3.0)
+            overlap = max(impact, weight)
+            normal, tangential, zeta = laws.law_stiffness(self.law, pair, named, r, m, overlap)
+            # name the overlap only when the stiffness depends on it (not for a linear spring)
+            depends = laws.law_stiffness(self.law, pair, named, r, m, 2.0 * overlap)[:2] != (normal, tangential)
+            modes = [("normal", math.sqrt(normal / m), zeta)]
+            if self.spin:
+                modes.append(("tangential", math.sqrt(3.5 * tangential / m), 0.0))
+            for mode, omega, damping in modes:
+                limit = 2.0 / omega * (math.sqrt(1.0 + damping**2) - damping)
+                if limit < best:
+                    best = limit
+                    why = (f"{mode} mode of a {kind} contact, omega = {omega:.4g} rad/s"
+                           + (f", damping ratio {damping:.3g}" if damping else "")
+                           + (f", stiffness at overlap {overlap:.3g} m" if depends else ""))
+        return best, why
+
     def _choose_time_step(self) -> tuple[float, str]:
         scene = self.scene
         self.reference_contact_time = self.contact_time()
+        self.stability, stability_why = self.stability_limit()
+        limit_text = (f"stability limit {self.stability:.4g} s of run.integrator = \"{scene.integrator}\" "
+                      f"({stability_why})")
         if scene.dt is not None:
-            return scene.dt, "given in the scenario"
+            if scene.dt <= self.stability:
+                return scene.dt, f"given in the scenario; {limit_text}"
+            if not scene.allow_unstable_dt:
+                suggested = self._automatic_time_step()[0]
+                raise ScenarioError(
+                    f"{scene.source}: run.dt = {scene.dt:.4g} s is above the {limit_text}; give run.dt <= "
+                    f"{self.stability:.4g} s (suggested: {suggested:.4g} s, what run.dt = \"auto\" chooses), or "
+                    "set run.allow_unstable_dt = true to run it anyway")
+            import warnings
+
+            warnings.warn(f"{scene.source}: run.dt = {scene.dt:.4g} s is {scene.dt / self.stability:.3g} times the "
+                          f"{limit_text}: allowed by run.allow_unstable_dt", stacklevel=2)
+            return scene.dt, f"given in the scenario, ABOVE the {limit_text} (run.allow_unstable_dt)"
         if not math.isfinite(self.reference_contact_time):
             raise ScenarioError(f"{scene.source}: run.dt = \"auto\" needs a possible contact (walls or two "
                                 "particles); give run.dt")
-        dt = self.reference_contact_time / scene.steps_per_contact
-        return dt, (f"auto: contact time {self.reference_contact_time:.4g} s "
-                    f"/ {scene.steps_per_contact} steps per contact")
+        return self._automatic_time_step()
+
+    def _automatic_time_step(self) -> tuple[float, str]:
+        scene = self.scene
+        rayleigh = self.rayleigh_time()
+        candidates = [
+            (self.reference_contact_time / scene.steps_per_contact,
+             f"contact time {self.reference_contact_time:.4g} s / {scene.steps_per_contact} steps per contact"),
+            (RAYLEIGH_FRACTION * rayleigh, f"{RAYLEIGH_FRACTION:g} x Rayleigh time {rayleigh:.4g} s"),
+            (STABILITY_SAFETY * self.stability, f"{STABILITY_SAFETY:g} x stability limit {self.stability:.4g} s"),
+        ]
+        dt, reason = min(candidates)
+        others = "; ".join(text for value, text in candidates if text != reason)
+        return dt, f"auto: {reason} (the smallest of that, {others})"
+
+    def _plan_flight(self) -> None:
+        """run.integrator = "analytic_flight": the free flight before the first contact in
+        closed form (minidem.integrate.flight_to_first_touch); the run starts at touch."""
+        scene = self.scene
+        self.start_time = 0.0
+        self.start_position, self.start_velocity = scene.position, scene.velocity
+        if scene.integrator != "analytic_flight":
+            return
+        walls = scene.walls
+        if scene.n_particles != 1 or walls.cylinder_base.shape[0] or walls.triangles.shape[0]:
+            raise ScenarioError(f"{scene.source}: run.integrator = \"analytic_flight\" needs one particle and "
+                                f"plane walls only (the scene has {scene.n_particles} particles, "
+                                f"{walls.cylinder_base.shape[0]} cylinders, {walls.triangles.shape[0]} triangles); "
+                                "use \"velocity_verlet\"")
+        flight = integrate.flight_to_first_touch(scene.position[0], scene.velocity[0], float(scene.radius[0]),
+                                                 scene.wall_point, scene.wall_normal, scene.gravity)
+        if flight is None:
+            return
+        duration, position, velocity, _ = flight
+        if scene.end_time is not None and duration > scene.end_time:
+            return  # no contact within the run: stepping it is as exact (constant force)
+        self.start_time = duration
+        self.start_position, self.start_velocity = position[None, :].copy(), velocity[None, :].copy()
 
     # -- neighbour lists -----------------------------------------------------------
     def rebuild(self, state: State) -> None:
@@ -426,10 +580,12 @@ class Simulation:
         status = np.zeros(4, dtype=np.int64)
         tracking = (probe_wall, probe, stats, status)
         stop_at_separation = scene.stop == "separation"
-        end_time = scene.end_time if scene.end_time is not None else 100.0 * self.reference_contact_time
+        end_time = scene.end_time if scene.end_time is not None else \
+            self.start_time + 100.0 * self.reference_contact_time
         if not math.isfinite(end_time):
             raise ScenarioError(f"{scene.source}: run.end_time is needed: the scene has no contact to stop at")
-        total_steps = int(math.ceil(end_time / self.dt - 1e-9))
+        start_time = self.start_time  # > 0 after an analytic flight to first touch
+        total_steps = max(0, int(math.ceil((end_time - start_time) / self.dt - 1e-9)))
         half_skin_squared = (0.5 * self.skin) ** 2
         inertia = scene.inertia
         no_trace = np.zeros((0, len(kernel.TRACE_COLUMNS)))
@@ -454,7 +610,7 @@ class Simulation:
 
         def call(start_step, n_steps, completing, trace):
             return k.advance(state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
-                             scene.gravity, state.position_at_build, half_skin_squared, self.dt, 0.0, start_step,
+                             scene.gravity, state.position_at_build, half_skin_squared, self.dt, start_time, start_step,
                              n_steps, completing, stop_at_separation, trace, tracking)
 
         # loop: the run loop's own state, saved with the arrays in every checkpoint
@@ -473,22 +629,25 @@ class Simulation:
         elif self.pairs or state.meshes[0].shape[0]:
             self.rebuild(state)
         try:
+            # the one compilation of this kernel, reported against the law that caused it
             if resume_from is None:
                 # zero-length step: initial forces (dt = 0, so no displacement increments)
-                k.compute_forces(state.particles, state.law, state.planes, state.cylinders, state.meshes,
-                                 state.pairs, scene.gravity, 0.0, 0.0, tracking)
-                k.finish(state.particles, state.pairs, 0.0)
-            # the one compilation of this kernel, reported against the law that caused it
-            # (a zero-step call changes nothing: the resumed state is untouched)
-            call(loop["steps"], 0, False, no_trace)
+                # and the closing kick (of zero), no drift; advance with dt = 0 and the
+                # step's drift marked done, since calling compute_forces from Python
+                # would compile it a second time
+                k.advance(state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
+                          scene.gravity, state.position_at_build, half_skin_squared, 0.0, start_time, 0, 1, True,
+                          False, no_trace, tracking)
+            else:
+                call(loop["steps"], 0, False, no_trace)  # changes nothing: the resumed state is untouched
         except numba.core.errors.NumbaError as exc:
             raise laws.LawError(f"law '{self.law.name}' from plugin '{self.entry.plugin}' "
                                 f"({self.entry.distribution}): its force function does not compile in the "
                                 f"engine: {_numba_cause(exc)}") from exc
         if resume_from is None:
-            energy.append((0.0, state.kinetic_energy(inertia)))
+            energy.append((start_time, state.kinetic_energy(inertia)))
             if frames_on:
-                on_frame(0.0, state)
+                on_frame(start_time, state)
                 loop["frames"], loop["last_frame_step"] = 1, 0
         fingerprint = checkpoint.fingerprint(self) if policy is not None else None
 
@@ -511,7 +670,7 @@ class Simulation:
             step = snap["loop"]["steps"]
             meta = {"kind": kind, "source": scene.source, "minidem": __version__, "kernel": k.__name__,
                     "law": self.law.name, "law_package": f"{self.entry.distribution} {self.entry.version}",
-                    "fingerprint": fingerprint, "dt": self.dt, "step": step, "time": step * self.dt,
+                    "fingerprint": fingerprint, "dt": self.dt, "step": step, "time": start_time + step * self.dt,
                     "total_steps": total_steps, "loop": snap["loop"], "frames_series": series}
             return checkpoint.write(Path(policy.directory) / name, arrays, meta)
 
@@ -543,15 +702,15 @@ class Simulation:
             if policy is not None:
                 written.append(str(write_state(checkpoint.LAST_GOOD, last_good, "last good")))
             if frames_on and checked["last_frame_step"] != good_step:
-                on_frame(good_step * self.dt, state)
+                on_frame(start_time + good_step * self.dt, state)
                 written.append("the last VTK frame")
             where = f", written to {' and '.join(written)}" if written else ""
             advice = suggestion or self.suggested_time_step()
             raise RunFailure(f"{message}. {advice[0].upper()}{advice[1:]}. Last good state: step {good_step} "
-                             f"(t = {good_step * self.dt:.6g} s){where}")
+                             f"(t = {start_time + good_step * self.dt:.6g} s){where}")
 
         def check(step):
-            at_time = step * self.dt
+            at_time = start_time + step * self.dt
             fault, loop["gravity_work_max"] = guard.check(state, at_time, loop["gravity_work_max"])
             if fault is not None:
                 touching = blowup.contacts_of(state, fault.particle)
@@ -592,7 +751,7 @@ class Simulation:
                     continue
                 if taken == chunk and wallclock.perf_counter() - chunk_started < 0.1:
                     chunk_goal = min(chunk_steps, chunk_goal * 2)
-                now = steps * self.dt
+                now = start_time + steps * self.dt
                 check(steps)
                 separating = taken < chunk  # stop_at_separation: the last contact ended
                 at_frame = frames_on and steps >= frame_step(loop["frames"])
@@ -621,7 +780,7 @@ class Simulation:
         except KeyboardInterrupt:
             # Ctrl-C (or SIGTERM through the CLI) between chunks: keep what was done
             if policy is not None:
-                self.interrupted_at = (good["loop"]["steps"] * self.dt,
+                self.interrupted_at = (start_time + good["loop"]["steps"] * self.dt,
                                        write_state(checkpoint.CHECKPOINT, good, "checkpoint"))
             raise
         wall_time = wallclock.perf_counter() - started
@@ -633,7 +792,7 @@ class Simulation:
             scene=scene, law=self.law, constants=self.constants_by_pair, position=state.position,
             velocity=state.velocity, angular_velocity=state.angular_velocity, initial_velocity=scene.velocity,
             initial_angular_velocity=scene.angular_velocity, steps=steps, dt=self.dt, dt_reason=self.dt_reason,
-            time=steps * self.dt, separated=separated, first_contact_time=stats[0], last_separation_time=stats[1],
+            time=start_time + steps * self.dt, separated=separated, first_contact_time=stats[0], last_separation_time=stats[1],
             max_overlap=stats[2], peak_normal_force=stats[3], peak_tangential_force=stats[4], wall_time=wall_time,
             trace=np.concatenate(trace_chunks) if trace_chunks else None, force=state.force, torque=state.torque,
             contacts=state.count_contacts(), neighbour_builds=state.builds, threads=threads,
@@ -643,7 +802,7 @@ class Simulation:
     def _fault_message(self, status, steps) -> str:
         """What the kernel stopped for (status codes of minidem.kernel)."""
         code, particle, partner, kind = (int(x) for x in status)
-        when = f"at step {steps} (t = {steps * self.dt:.6g} s)"
+        when = f"at step {steps} (t = {self.start_time + steps * self.dt:.6g} s)"
         what = {kernel.PLANE: "plane wall", kernel.CYLINDER: "cylinder wall", kernel.TRIANGLE: "mesh triangle",
                 kernel.PARTICLE: "particle"}.get(kind, "partner")
         if code == kernel.NON_FINITE_FORCE:

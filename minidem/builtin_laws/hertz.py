@@ -51,6 +51,17 @@ def prepare_hertz(pair, params):
     }
 
 
+def hertz_stiffness(pair, constants, effective_radius, effective_mass, normal_overlap):
+    """Tangent stiffnesses at an overlap, 2 E* a and 8 G* a (a = sqrt(R* d); no law here
+    is stiffer tangentially: theta <= 1 in HMD, LTH's initial slope is 8 G* a too), and
+    the damping ratio of the Tsuji dashpot against the tangent normal stiffness:
+    alpha sqrt(m* K) d^(1/4) / (2 sqrt(m* 3/2 K d^(1/2))) = alpha / (2 sqrt(3/2)), the
+    same at every overlap."""
+    a = math.sqrt(effective_radius * normal_overlap)
+    return (2.0 * pair.effective_modulus * a, 8.0 * pair.effective_shear_modulus * a,
+            constants["damping_factor"] / (2.0 * math.sqrt(1.5)))
+
+
 @numba.njit(cache=True, inline="always")
 def hertz_normal_force(constants, effective_radius, effective_mass, normal_overlap, normal_velocity):
     """Eq 15, K d^1.5 with K = 4/3 E* sqrt(R*), plus the Tsuji-type dashpot
@@ -375,6 +386,7 @@ def _law(name, description, force, history, reference, aliases=(), extra=()):
         force=force,
         aliases=aliases,
         reference=reference,
+        stiffness=hertz_stiffness,
     )
 
 

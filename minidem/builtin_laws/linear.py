@@ -42,6 +42,11 @@ def linear_contact_time(pair, constants, effective_radius, effective_mass, norma
     return math.pi * math.sqrt(effective_mass / constants["normal_stiffness"])
 
 
+def linear_stiffness(pair, constants, effective_radius, effective_mass, normal_overlap):
+    """kn, kt and the dashpot's damping ratio: the spring is linear, so no overlap dependence."""
+    return constants["normal_stiffness"], constants["tangential_stiffness"], constants["damping_ratio"]
+
+
 @numba.njit(cache=True)
 def linear_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
                  normal_velocity, tangential_increment, tangential_velocity, history):
@@ -75,6 +80,7 @@ LS = ContactLaw(
     prepare=prepare_linear,
     force=linear_force,
     contact_time=linear_contact_time,
+    stiffness=linear_stiffness,
     aliases=("linear_spring", "lsd"),
     reference="Thornton, Cummins & Cleary (2011) section 3.2",
 )
