@@ -753,7 +753,10 @@ class Simulation:
                     chunk_goal = min(chunk_steps, chunk_goal * 2)
                 now = start_time + steps * self.dt
                 check(steps)
-                separating = taken < chunk  # stop_at_separation: the last contact ended
+                # stop_at_separation: the last contact ended (the kernel returns early, or
+                # it ended on the chunk's last step, which must not cost one more step)
+                separating = stop_at_separation and (taken < chunk or (
+                    stats[kernel.FIRST_CONTACT_TIME] >= 0.0 and state.count_contacts() == 0))
                 at_frame = frames_on and steps >= frame_step(loop["frames"])
                 if steps % sample_steps == 0 or steps == total_steps or at_frame or separating:
                     energy.append((now, state.kinetic_energy(inertia)))
