@@ -86,17 +86,37 @@ def batches(positions: Sequence[int], workers: int) -> list[list[int]]:
     return [list(positions[i:i + size]) for i in range(0, len(positions), size)]
 
 
-def _exit_with_parent(parent: int) -> None:
+def _exit_with_parent(parent: int, forked: bool) -> None:
     """Pool initializer: a worker whose parent was killed (kill -9) would wait for work
     forever (its siblings hold the queue open); this ends it within a second."""
     import threading
 
+    def alive() -> bool:
+        if forked:  # the parent's own child: re-parented when it dies
+            return os.getppid() == parent
+        try:  # started by a fork server: the parent is no ancestor, ask for it by pid
+            os.kill(parent, 0)
+        except ProcessLookupError:
+            return False
+        except PermissionError:
+            pass
+        return True
+
     def watch():
-        while os.getppid() == parent:
+        while alive():
             time.sleep(1.0)
         os._exit(1)
 
     threading.Thread(target=watch, daemon=True, name="minidem-parent-watch").start()
+
+
+def _fork_is_safe() -> bool:
+    """False once numba's threading layer has started its threads in this process (a
+    parallel multi-particle run): a forked child inherits locks held by threads that do
+    not exist in it and can hang for ever (seen: a sweep after a parallel run in the same
+    pytest process hung in its workers)."""
+    parallel = sys.modules.get("numba.np.ufunc.parallel")
+    return parallel is None or not getattr(parallel, "_is_initialized", False)
 
 
 class LocalProcesses:
@@ -117,9 +137,14 @@ class LocalProcesses:
         # Runs here before the fork: every worker inherits what they compiled or loaded.
         for position in warm:
             yield position, function(tasks[position])
-        context = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else None)
+        methods = multiprocessing.get_all_start_methods()
+        forked = "fork" in methods and _fork_is_safe()
+        # else the workers load the kernels from the disk cache instead of inheriting them
+        context = multiprocessing.get_context(
+            "fork" if forked else "forkserver" if "forkserver" in methods else "spawn")
         pool = concurrent.futures.ProcessPoolExecutor(max_workers=workers, mp_context=context,
-                                                      initializer=_exit_with_parent, initargs=(os.getpid(),))
+                                                      initializer=_exit_with_parent,
+                                                      initargs=(os.getpid(), forked))
         try:
             futures = {pool.submit(_call_batch, function, [tasks[p] for p in batch]): batch
                        for batch in batches(rest, workers)}

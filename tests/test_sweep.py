@@ -19,6 +19,7 @@ import subprocess
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from minidem import cli, executors, scenario, sweep
@@ -86,6 +87,27 @@ def test_sweep_csv_is_identical_for_any_worker_count(reference, tmp_path):
     assert (tmp_path / "sweep.csv").read_bytes() == (directory / "sweep.csv").read_bytes()
     for trace in sorted((directory / "traces").glob("*.csv")):
         assert (tmp_path / "traces" / trace.name).read_bytes() == trace.read_bytes()
+
+
+def test_a_sweep_after_parallel_loops_in_the_same_process_does_not_fork(reference, tmp_path):
+    # Forking once numba's threading layer has started its threads can hang the workers
+    # (a lock held by a thread that does not exist in the child: seen after the parallel
+    # multi-particle tests). The pool must then start its workers from a fork server,
+    # and give the same file.
+    import numba
+
+    @numba.njit(parallel=True)
+    def total(values):
+        result = 0.0
+        for i in numba.prange(values.shape[0]):
+            result += values[i]
+        return result
+
+    assert total(np.ones(1000)) == 1000.0
+    assert not executors._fork_is_safe()
+    directory, _ = reference
+    sweep.run(_plan(), tmp_path, progress=False, executor=executors.LocalProcesses(2))
+    assert (tmp_path / "sweep.csv").read_bytes() == (directory / "sweep.csv").read_bytes()
 
 
 def test_interrupted_sweep_resumes_with_only_the_missing_cases(reference, tmp_path):
