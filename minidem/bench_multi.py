@@ -108,7 +108,10 @@ def lattice_data(n: int, jitter: float, folder: Path) -> Path:
 
 def import_baseline() -> dict:
     """Peak RSS (MiB) of a fresh interpreter at each stage before any simulation data."""
-    code = ("import resource, json\nr = lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024\n"
+    # VmHWM, not ru_maxrss: Linux carries ru_maxrss across fork + exec, so a child of this
+    # (large) process would report this process's peak at its first line
+    code = ("import json\n"
+            "r = lambda: int(next(l for l in open('/proc/self/status') if l.startswith('VmHWM')).split()[1]) / 1024\n"
             "out = {'python': r()}\nimport numpy\nout['numpy'] = r()\nimport numba\nout['numba'] = r()\n"
             "import minidem.simulation\nout['minidem'] = r()\n"
             "from minidem.neighbours import reverse_index\nimport numpy as np\n"
