@@ -50,9 +50,10 @@ class Executor(Protocol):
     def run(self, function: Callable[[Any], Any], tasks: Sequence[Any],
             warm: Sequence[int] = ()) -> Iterator[tuple[int, Any]]:
         """Run ``function(task)`` for every task; yield ``(position in tasks, result or
-        Lost)`` as each finishes, in any order. ``warm``: positions worth running first in
-        this process (a back end that forks its workers then hands them what those runs
-        loaded, e.g. compiled kernels); a back end may ignore it."""
+        Lost)`` as each finishes, in any order. ``warm``: positions worth running first,
+        each on its own (the first case of each kernel: compiled by different workers at
+        the same time, then loaded from the disk cache by every other case); a back end
+        may ignore it."""
 
     def close(self) -> None:
         ...
@@ -134,9 +135,6 @@ class LocalProcesses:
             for position in warm + rest:
                 yield position, function(tasks[position])
             return
-        # Runs here before the fork: every worker inherits what they compiled or loaded.
-        for position in warm:
-            yield position, function(tasks[position])
         methods = multiprocessing.get_all_start_methods()
         forked = "fork" in methods and _fork_is_safe()
         # else the workers load the kernels from the disk cache instead of inheriting them
@@ -146,8 +144,11 @@ class LocalProcesses:
                                                       initializer=_exit_with_parent,
                                                       initargs=(os.getpid(), forked))
         try:
+            # The warm cases (the first of each kernel) go first, one a task, so the
+            # workers compile different kernels at the same time (a cold paper sweep is
+            # mostly compilation); the other cases then load them from the disk cache.
             futures = {pool.submit(_call_batch, function, [tasks[p] for p in batch]): batch
-                       for batch in batches(rest, workers)}
+                       for batch in [[p] for p in warm] + batches(rest, workers)}
             for future in concurrent.futures.as_completed(futures):
                 batch = futures.pop(future)
                 try:

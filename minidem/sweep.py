@@ -400,7 +400,7 @@ def _run_locked(sweep, directory, progress, workers, executor, restart, echo) ->
     pending = [i for i in range(n) if i not in done]
     tasks = [Case(i, sweep.base, tuple(sweep.overrides(i)), sweep.source, sweep.keep_traces, laws, fingerprint)
              for i in pending]
-    # the first case of each law first: a forking back end hands its kernel to every worker
+    # the first case of each law first and on its own: the workers compile the kernels in parallel
     first_of_law: dict[Any, int] = {}
     for position, index in enumerate(pending):
         first_of_law.setdefault(_law_of(sweep, index), position)
