@@ -11,6 +11,7 @@ hands frames to an output callback.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import importlib.util
 import math
@@ -76,6 +77,16 @@ def _law_source_hash(law: laws.ContactLaw) -> str:
 _LOADED: dict[str, object] = {}
 
 
+@functools.lru_cache(maxsize=None)
+def _engine_hash() -> str:
+    """Hash of the engine sources a kernel is built from: read once per process (a sweep
+    builds one Simulation per case, and these files do not change under a running one)."""
+    engine = hashlib.sha256()
+    for name in _ENGINE_SOURCES:
+        engine.update((_TEMPLATE.parent / name).read_bytes())
+    return engine.hexdigest()
+
+
 def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, cylinders: bool = False,
                    meshes: bool = False, parallel: bool = False, integrator: str = "velocity_verlet"):
     """Return the kernel module specialised for ``entry.law``, a scene shape and an
@@ -85,11 +96,8 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
     flags["OPENING_KICK"] = integrate.OPENING_KICK[integrator]
     law = entry.law
     func = law.force.py_func
-    engine = hashlib.sha256()
-    for name in _ENGINE_SOURCES:
-        engine.update((_TEMPLATE.parent / name).read_bytes())
     key = hashlib.sha256(
-        f"{engine.hexdigest()}|{_law_source_hash(law)}|{entry.distribution}|{entry.version}|{func.__module__}."
+        f"{_engine_hash()}|{_law_source_hash(law)}|{entry.distribution}|{entry.version}|{func.__module__}."
         f"{func.__qualname__}|{flags}|{law.vector_history_offsets}|{numba.__version__}|{__version__}".encode()
     ).hexdigest()[:16]
     module_name = f"minidem_kernel_{law.name}_{key}"
