@@ -178,7 +178,8 @@ def dask_available() -> bool:
 class DaskCluster:
     """The workers of a running Dask scheduler. Tasks go in small batches
     (``Client.submit``) and come back through ``as_completed``; a worker that dies
-    mid-batch has that batch rerun elsewhere by the scheduler."""
+    mid-batch has that batch rerun elsewhere by the scheduler, and a batch whose result
+    died with its worker before it was fetched is run again (:func:`collect`)."""
 
     def __init__(self, address: str, connect_timeout_s: float = 20.0, source: str = "--scheduler"):
         try:
@@ -197,30 +198,73 @@ class DaskCluster:
         workers = len(self.client.scheduler_info().get("workers", {}))
         self.description = f"Dask scheduler {address} ({workers} worker(s) at start)"
 
-    def run(self, function, tasks, warm=()):
-        from distributed import as_completed
+    # A result that is lost with its worker is computed again, at most this many times
+    # per batch; the scheduler itself gives up on a task after distributed's
+    # ``allowed-failures`` (3) worker deaths during it and raises KilledWorker.
+    MAX_ATTEMPTS = 4
 
+    def run(self, function, tasks, warm=()):
         if not tasks:
             return
         workers = len(self.client.scheduler_info().get("workers", {}))
         groups = batches(range(len(tasks)), workers)
-        futures = {self.client.submit(_call_batch, function, [tasks[p] for p in group], pure=False): group
-                   for group in groups}
-        try:
-            for future in as_completed(list(futures), loop=self.client.loop):
-                group = futures.pop(future)
-                if future.status == "finished":
-                    yield from zip(group, future.result())
-                else:
-                    exc = future.exception()
-                    yield from ((p, Lost(f"{type(exc).__name__}: {exc}")) for p in group)
-                future.release()
-        finally:
-            if futures:  # interrupted: cancel what nobody will wait for
-                self.client.cancel(list(futures))
+        yield from collect(self.client, function, [[tasks[p] for p in g] for g in groups], groups,
+                           self.MAX_ATTEMPTS)
 
     def close(self):
         self.client.close()
+
+
+def collect(client, function, batches_of_tasks, groups, max_attempts: int) -> Iterator[tuple[int, Any]]:
+    """Submit every batch and yield ``(position, result)`` as batches come back.
+
+    A batch can finish on a worker that dies before its result is fetched: its future
+    then turns "lost" (or back to "pending" while the scheduler recomputes it, because
+    we still hold it), or fetching it fails. Neither is the case's failure, so the
+    batch is waited for again or submitted again; only an error raised by the task
+    itself, the scheduler's KilledWorker, or ``max_attempts`` losses make it Lost."""
+    from distributed import as_completed
+
+    futures = {}
+    attempts = {}
+    for index, batch in enumerate(batches_of_tasks):
+        future = client.submit(_call_batch, function, batch, pure=False)
+        futures[future] = index
+        attempts[index] = 1
+    pending = as_completed(list(futures), loop=client.loop)
+
+    def again(index: int, reason: str):
+        attempts[index] += 1
+        if attempts[index] > max_attempts:
+            return [(p, Lost(f"{reason} ({max_attempts} attempts)")) for p in groups[index]]
+        future = client.submit(_call_batch, function, batches_of_tasks[index], pure=False)
+        futures[future] = index
+        pending.add(future)
+        return []
+
+    try:
+        for future in pending:
+            index = futures.pop(future)
+            status = future.status
+            if status == "finished":
+                try:
+                    results = future.result()
+                except Exception as exc:  # noqa: BLE001 - its data went with its worker
+                    future.release()
+                    yield from again(index, f"result lost: {type(exc).__name__}: {exc}")
+                    continue
+                yield from zip(groups[index], results)
+            elif status == "error":
+                exc = future.exception()
+                yield from ((p, Lost(f"{type(exc).__name__}: {exc}")) for p in groups[index])
+            else:  # "lost" / "pending": finished on a worker that died; start it again
+                future.release()
+                yield from again(index, f"result lost with its worker (status {status})")
+                continue
+            future.release()
+    finally:
+        if futures:  # interrupted: cancel what nobody will wait for
+            client.cancel(list(futures))
 
 
 def from_options(scheduler: str | None, workers: int) -> Executor:
