@@ -107,6 +107,8 @@ def command_run(args) -> int:
         print_summary(summary)
         if not result.separated and scene.stop == "separation":
             print(f"  warning: the contact had not ended by t = {result.time:.4g} s (run.end_time)")
+        for warning in summary["warnings"]:
+            print(f"  warning: {warning}")
         print(f"  wrote {directory / 'summary.json'}, {directory / checkpoint.FINAL_STATE}"
               + (f", {frames.pvd_path} ({frames.frames} frames)" if frames is not None else ""))
         rate = result.steps / result.wall_time if result.wall_time > 0 else float("inf")

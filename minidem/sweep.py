@@ -511,6 +511,22 @@ def friction_of(sweep: SweepPlan) -> float:
     return float(value) if isinstance(value, (int, float)) else math.nan
 
 
+def _energy_gain_notes(rows: list[dict]) -> list[str]:
+    """One line per law whose impacts gained kinetic energy beyond integration error
+    (analysis.energy_creation_warning), with the swept cases where it happened."""
+    from minidem import analysis
+
+    gained: dict[str, list[dict]] = {}
+    for r in rows:
+        if r["status"] == "ok" and analysis.energy_creation_warning(
+                r["law"], r["energy_ratio"], r["dt_s"], r["contact_duration_s"]):
+            gained.setdefault(r["law"], []).append(r)
+    return [f"law '{law}' created energy in {len(cases)} case(s) (energy_ratio up to "
+            f"{max(c['energy_ratio'] for c in cases):.6g}; cases {', '.join(str(c['case']) for c in cases[:8])}"
+            f"{', ...' if len(cases) > 8 else ''}): docs/laws.md, 'Laws that create energy'"
+            for law, cases in gained.items()]
+
+
 def command(args, data: dict) -> int:
     """``minidem run`` of a scenario with a [sweep] section."""
     import sys
@@ -547,6 +563,8 @@ def command(args, data: dict) -> int:
         print(f"  wrote {directory / 'sweep.csv'}" + "".join(f"\n  wrote {p}" for p in written))
         for r in failed:
             print(f"  case {r['case']} failed: {r['error']}")
+        for line in _energy_gain_notes(rows):
+            print(f"  warning: {line}")
     if failed:
         print(f"minidem: {len(failed)} of {len(rows)} sweep case(s) failed (status and error columns of "
               f"{directory / 'sweep.csv'}); the other cases ran", file=sys.stderr)

@@ -340,3 +340,15 @@ def test_scheduler_errors_are_clear(tmp_path, capsys):
     expected = "tcp://HOST:PORT" if executors.dask_available() else "pip install 'minidem[dask]'"
     assert code == 2 and expected in capsys.readouterr().err
     assert not (tmp_path / "o" / "sweep.csv").exists()
+
+
+def test_sweep_names_the_laws_that_created_energy():
+    # the paper's LTH gains up to 1.25 % at 16 deg (docs/paper-reproduction.md); a gain of
+    # 1e-9 is round-off (docs/laws.md, 'Laws that create energy'); a failed case has none
+    row = {"status": "ok", "dt_s": 3.1e-8, "contact_duration_s": 1.26e-4}
+    rows = [dict(row, case=0, law="lth", energy_ratio=1.0125), dict(row, case=1, law="lth", energy_ratio=1.0 + 1e-9),
+            dict(row, case=2, law="hm", energy_ratio=0.99998),
+            {"status": "failed", "case": 3, "law": "hmd", "energy_ratio": None, "dt_s": None,
+             "contact_duration_s": None}]
+    notes = sweep._energy_gain_notes(rows)
+    assert len(notes) == 1 and "'lth'" in notes[0] and "1 case(s)" in notes[0] and "1.0125" in notes[0]
