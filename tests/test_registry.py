@@ -108,6 +108,26 @@ FAKE_PLUGINS = {
     "fake_import_error": '''
         import a_module_that_does_not_exist_anywhere
     ''',
+    "fake_frame": '''
+        @numba.njit(cache=True)
+        def global_x_drag_force(constants, effective_radius, effective_mass, normal_overlap,
+                                normal_overlap_increment, normal_velocity, tangential_increment,
+                                tangential_velocity, history):
+            # friction-like drag along the global x axis only: it depends on how the
+            # scene is oriented, which no contact law may
+            return constants[0] * normal_overlap, -constants[1] * tangential_velocity[0], 0.0, 0.0
+
+        def prepare_drag(pair, params):
+            return {"stiffness": params["stiffness"], "drag": params["drag"]}
+
+        @hookimpl
+        def minidem_register_laws(registry):
+            registry.add(law("fake_global_x_drag", force=global_x_drag_force, prepare=prepare_drag,
+                             constants=("stiffness", "drag"), frictional=True, parameters=(
+                                 Parameter("stiffness", 1e8, "N/m", "normal stiffness", low=0.0, low_open=True),
+                                 Parameter("friction", 0.1, "-", "unused", low=0.0),
+                                 Parameter("drag", 200.0, "N s/m", "drag along x", low=0.0))))
+    ''',
 }
 
 
@@ -311,3 +331,19 @@ def test_cli_reports_an_uncompilable_plugin_law_as_bad_input(fake_site, fake_dis
     assert "Traceback" not in done.stderr
     assert "law 'fake_uncompilable' from plugin 'good' (minidem-fakeplugin)" in done.stderr
     assert not (tmp_path / "out" / "summary.json").exists()
+
+
+def test_verify_catches_a_law_that_depends_on_the_frame(fake_site, monkeypatch):
+    """The negative case of `minidem verify`'s frame-invariance check: a law whose drag
+    acts along the global x axis gives another collision when the scene is rotated, and
+    the check must fail it (its positive case: every built-in law and the plugin of
+    tests/test_faults.py pass). Momentum is still conserved: the law is equal and
+    opposite on the two spheres, so only the rotation shows the defect."""
+    from minidem import verify
+
+    monkeypatch.setattr(laws, "_REGISTRY", load("fake_frame"))
+    checks = {c.name: c for c in verify.Battery("fake_global_x_drag").pair_collision()}
+    invariance = checks["frame invariance (rotated collision)"]
+    assert invariance.passed is False, invariance.value
+    assert checks["sphere-sphere forces equal and opposite"].passed, checks["sphere-sphere forces equal and opposite"]
+
