@@ -48,9 +48,12 @@ choices" once written, which the engine follows):
   (``_Law.special_margin``) reaches zero, 4 where the displacement deficit D reaches zero
   (docs/laws.md "HMD implementation choices", item 9);
 - a full reversal at Ft = -Ft* needs Ft* > 0 (eq 23 drives Ft* below zero once Fn has
-  fallen enough, and -Ft* is then no point of the mirrored curve; the engine's guard);
-- a reload that climbs back to Ft* returns to the loading branch; an unload that reaches
-  -Ft* is a full reversal: loading in the opposite direction;
+  fallen enough, and -Ft* is then no point of the mirrored curve; the engine's guard):
+  it happens where the state enters {Ft <= -Ft*, Ft* > 0}, located by the continuous
+  event function max(Ft + Ft*, -Ft*);
+- a reload that climbs back to Ft* returns to the loading branch (at once if eq 23 has
+  already taken Ft* below the force); an unload that reaches -Ft* is a full reversal:
+  loading in the opposite direction;
 - LS kn is the paper's eq 28, kn = 1.2024 (m^1/2 E*^2 R V)^2/5 at the impact speed V
   (y1, y2, et of the linear law do not depend on kn: it only sets the time scale).
 """
@@ -322,10 +325,17 @@ class _Law:
             if kind == "load":
                 out.append((v, "unload"))
             elif kind == "unload":
-                # a full reversal needs a reversal point: eq 23 drives Ft* below zero once
-                # Fn has fallen enough, and -Ft* is then no point of the mirrored curve
-                # (the engine's guard; without it the event fires at f = -Ft* > 0)
-                out += [(-v, "reload"), (f + y[F1] if y[F1] > 0.0 else 1.0, "reverse")]
+                # full reversal where the state enters {f <= -Ft*, Ft* > 0} (a reversal
+                # point: eq 23 drives Ft* below zero once Fn has fallen enough, and -Ft*
+                # is then no point of the mirrored curve). The set is entered through
+                # f + Ft* = 0 or through Ft* = 0; each boundary is its own continuous
+                # event and transition() checks the other condition there. (The old
+                # single event, "f + Ft* if Ft* > 0 else 1", jumped to 1 when a step took
+                # Ft* through zero just after f + Ft* had crossed it, so the reversal was
+                # missed: et 0.845 instead of 0.750 at mu = 1, 1 deg. With fast eq 23
+                # the set can be crossed within one step, so no single function of the
+                # end points can locate it.)
+                out += [(-v, "reload"), (f + y[F1], "reverse"), (-y[F1], "reverse_point_positive")]
             else:
                 out += [(v, "unload"), (y[F1] - f, "load")]
         return out
@@ -418,11 +428,18 @@ class _Law:
             return ("unload", sign, *self._special(y, sign, mode)), y
         if label == "reload":
             y[F2] = sign * y[Q]
+            if sign * y[Q] >= y[F1]:
+                # eq 23 has taken Ft* below the force: the reload is already past Ft*,
+                # so the memory is erased at once (the engine's test, made each step)
+                return ("load", sign, *self._special(y, sign, mode)), y
             return ("reload", sign, *self._special(y, sign, mode)), y
         if label == "load":
             return ("load", sign, *self._special(y, sign, mode)), y
-        if label == "reverse":
-            return ("load", -sign, *self._special(y, -sign, mode)), y
+        if label in ("reverse", "reverse_point_positive"):
+            f = sign * y[Q]
+            if y[F1] > 0.0 and f + y[F1] <= 0.0:
+                return ("load", -sign, *self._special(y, -sign, mode)), y
+            return mode, y  # the other boundary of the set: no reversal
         raise AssertionError(label)
 
 
@@ -520,10 +537,15 @@ def solve(impact: Impact, rtol: float = 1e-10, max_steps: int = 200_000) -> Solu
         steps += 1
         max_overlap = max(max_overlap, y[DELTA])
         if label is not None:
-            events.append((t, label))
             if label == "end":
+                events.append((t, label))
                 break
-            mode, y = law.transition(mode, y, label)
+            new_mode, y = law.transition(mode, y, label)
+            if label.startswith("reverse"):
+                # a boundary of the full-reversal set where the other condition fails
+                label = "reverse" if new_mode[1] != mode[1] else "no reversal (Ft* <= 0)"
+            events.append((t, label))
+            mode = new_mode
         else:
             h *= min(5.0, max(0.2, 0.9 * max(norm, 1e-10) ** -0.2))
     vs = y[VT] + y[WR]
