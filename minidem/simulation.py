@@ -16,8 +16,10 @@ import hashlib
 import importlib.util
 import math
 import os
+import inspect
 import sys
 import time as wallclock
+import types
 from pathlib import Path
 
 import numba
@@ -63,15 +65,82 @@ def cache_directory() -> Path:
     return path
 
 
-def _law_source_hash(law: laws.ContactLaw) -> str:
-    """Hash of every module beside the law's, so an edited helper also invalidates the kernel
-    (numba's cache does not notice changes in a callee)."""
-    module = sys.modules[law.force.py_func.__module__]
+# Modules whose code a law may call but which cannot change under a minidem install
+# without numba's or minidem's version changing (both are in the kernel key).
+_STABLE_PACKAGES = {"numpy", "numba", "math", "cmath", "builtins", "llvmlite"}
+
+
+def _law_dependencies(law: laws.ContactLaw) -> tuple[str, tuple]:
+    return _force_dependencies(law.force)
+
+
+@functools.lru_cache(maxsize=None)
+def _force_dependencies(force) -> tuple[str, tuple]:
+    """Hash of the source of the law's force function and of everything it calls, followed
+    transitively through jitted and plain functions, closures and modules of any package
+    (a helper in a subpackage, minidem.builtin_laws.common, another distribution), with
+    the module-level constants they read (numba freezes those into the machine code);
+    and the numba dispatchers met on the way. Read once per process per law, like the
+    engine's sources (_engine_hash).
+
+    Why: numba's own cache only notices a change in the file that defines a function, not
+    in a function it calls, so an edited helper would otherwise leave a stale kernel."""
     digest = hashlib.sha256()
-    folder = Path(module.__file__).parent
-    for path in sorted(folder.glob("*.py")):
-        digest.update(path.read_bytes())
-    return digest.hexdigest()
+    seen: set = set()
+    dispatchers: list = []
+
+    def names_of(code) -> set:
+        names = set(code.co_names) | set(code.co_freevars)
+        for const in code.co_consts:
+            if hasattr(const, "co_names"):
+                names |= names_of(const)
+        return names
+
+    def visit_function(func) -> None:
+        code = func.__code__
+        if code in seen:
+            return
+        seen.add(code)
+        try:
+            text = inspect.getsource(func)
+        except (OSError, TypeError):  # no source file (built at run time): its byte code
+            text = code.co_code.hex() + repr(code.co_consts)
+        digest.update(f"{func.__module__}.{func.__qualname__}\n{text}\n".encode())
+        names = names_of(code)
+        scope = dict(func.__globals__)
+        for cell_name, cell in zip(code.co_freevars, func.__closure__ or ()):
+            try:
+                scope[cell_name] = cell.cell_contents
+            except ValueError:  # an empty cell
+                pass
+        for name in sorted(names):
+            if name in scope:
+                visit_value(f"{func.__module__}.{name}", scope[name], names)
+
+    def visit_value(label: str, value, names: set) -> None:
+        if isinstance(value, numba.core.registry.CPUDispatcher):
+            if value not in dispatchers:
+                dispatchers.append(value)
+            visit_function(value.py_func)
+        elif isinstance(value, types.FunctionType):
+            visit_function(value)
+        elif isinstance(value, types.ModuleType):
+            if value.__name__.split(".")[0] in _STABLE_PACKAGES or id(value) in seen:
+                return
+            seen.add(id(value))
+            for name in sorted(names):  # attribute loads share co_names with globals
+                if hasattr(value, name):
+                    visit_value(f"{value.__name__}.{name}", getattr(value, name), names)
+        elif isinstance(value, (bool, int, float, complex, str, bytes, tuple)):
+            digest.update(f"{label}={value!r}\n".encode())
+
+    visit_value(f"{force.py_func.__module__}.{force.py_func.__qualname__}", force, set())
+    return digest.hexdigest(), tuple(dispatchers)
+
+
+def _law_source_hash(law: laws.ContactLaw) -> str:
+    """Hash of the code the law's force function runs (see _law_dependencies)."""
+    return _law_dependencies(law)[0]
 
 
 _LOADED: dict[str, object] = {}
@@ -96,8 +165,9 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
     flags["OPENING_KICK"] = integrate.OPENING_KICK[integrator]
     law = entry.law
     func = law.force.py_func
+    law_hash, law_dispatchers = _law_dependencies(law)
     key = hashlib.sha256(
-        f"{_engine_hash()}|{_law_source_hash(law)}|{entry.distribution}|{entry.version}|{func.__module__}."
+        f"{_engine_hash()}|{law_hash}|{entry.distribution}|{entry.version}|{func.__module__}."
         f"{func.__qualname__}|{flags}|{law.vector_history_offsets}|{numba.__version__}|{__version__}".encode()
     ).hexdigest()[:16]
     module_name = f"minidem_kernel_{law.name}_{key}"
@@ -113,6 +183,14 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
              + f"VECTOR_OFFSETS = {tuple(law.vector_history_offsets)!r}\n" + _BLOCK_END)
     path = cache_directory() / f"{module_name}.py"
     if not path.exists():
+        # A new kernel: the code the law calls is new to this cache. Its functions' own
+        # numba caches may hold machine code built against an older helper (numba checks
+        # only each function's own file), and compiling the kernel would link that in:
+        # drop them, so that they are compiled from the current sources.
+        for dispatcher in law_dispatchers:
+            cache = getattr(dispatcher, "_cache", None)
+            if cache is not None:
+                cache.flush()
         # written once and never touched again: numba keys its cache on the file's stamp
         tmp = path.with_suffix(f".tmp{os.getpid()}")
         tmp.write_text(head + block + tail)

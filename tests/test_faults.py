@@ -396,3 +396,98 @@ def test_a_plugin_written_outside_the_repository_is_installed_listed_run_and_ver
         assert f"PASS  {check}" in judged.stdout
     report = json.loads((tmp_path / "verify" / "verify.json").read_text())
     assert (report["package"], report["version"]) == ("minidem-hooke-coulomb", "2.5.1")
+
+
+HELPER_PLUGIN_LAW = '''
+"""A linear normal spring whose stiffness factor comes from a helper in a subpackage."""
+import math
+
+import numba
+
+from minidem import hookimpl
+from minidem.laws import ContactLaw, Parameter
+from minidem_scaled.helpers.factor import stiffness_factor
+
+
+def prepare(pair, params):
+    return {"normal_stiffness": params["normal_stiffness"]}
+
+
+def contact_time(pair, constants, effective_radius, effective_mass, normal_speed):
+    return math.pi * math.sqrt(effective_mass / constants["normal_stiffness"])
+
+
+@numba.njit(cache=True)
+def scaled_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+                 normal_velocity, tangential_increment, tangential_velocity, history):
+    return stiffness_factor() * constants[0] * normal_overlap, 0.0, 0.0, 0.0
+
+
+@hookimpl
+def minidem_register_laws(registry):
+    registry.add(ContactLaw(
+        name="scaled_spring", description="linear spring, stiffness factor from a helper",
+        parameters=(Parameter("normal_stiffness", 1e8, "N/m", "kn", low=0.0, low_open=True),),
+        constants=("normal_stiffness",), history=(), prepare=prepare, force=scaled_force,
+        contact_time=contact_time, frictional=False))
+'''
+
+
+def test_an_edited_helper_of_a_plugin_law_rebuilds_its_kernel(tmp_path):
+    """A helper two files away from the force function (a subpackage) is edited between two
+    runs: the second run must use it. numba's cache checks only each function's own file,
+    so without minidem following the force function's calls the first kernel (and the
+    force function's own cached machine code) came back: found by review, max overlap
+    2.08e-4 m twice instead of halving. Expected values from the spring alone: an
+    undamped linear spring stops the sphere at v sqrt(m / k) (paper eq 27's oscillator)."""
+    source = tmp_path / "scaled"
+    package = source / "minidem_scaled"
+    (package / "helpers").mkdir(parents=True)
+    (source / "pyproject.toml").write_text(textwrap.dedent('''
+        [build-system]
+        requires = ["setuptools>=61"]
+        build-backend = "setuptools.build_meta"
+
+        [project]
+        name = "minidem-scaled"
+        version = "1.0.0"
+
+        [project.entry-points.minidem]
+        scaled = "minidem_scaled.law"
+
+        [tool.setuptools]
+        packages = ["minidem_scaled", "minidem_scaled.helpers"]
+    '''))
+    (package / "__init__.py").write_text("")
+    (package / "helpers" / "__init__.py").write_text("")
+    (package / "law.py").write_text(textwrap.dedent(HELPER_PLUGIN_LAW))
+    helper = "import numba\n\n\n@numba.njit(cache=True)\ndef stiffness_factor():\n    return {}\n"
+    site = tmp_path / "site"
+    pip = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
+                          "--target", str(site), str(source)], capture_output=True, text=True)
+    assert pip.returncode == 0, pip.stderr
+    installed_helper = site / "minidem_scaled" / "helpers" / "factor.py"
+    # a cache of its own: what is tested is how this cache is reused
+    env = {"PYTHONPATH": str(site), "MINIDEM_CACHE_DIR": str(tmp_path / "cache"),
+           "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    mass = 4.0 / 3.0 * math.pi * 0.025**3 * 2650.0
+    scene = tmp_path / "normal.toml"  # the paper's impact; this law has no friction parameter
+    scene.write_text("\n".join(line for line in OBLIQUE.read_text().splitlines()
+                               if not line.startswith("friction")))
+
+    def max_overlap(factor: float, out: str) -> float:
+        installed_helper.write_text(helper.format(factor))
+        ran = run_cli("run", scene, "--out", tmp_path / out, "--quiet", "--set", "contact.law=scaled_spring",
+                      "--set", "impact.angle_deg=0", env=env)
+        assert ran.returncode == 0, ran.stderr
+        overlap = json.loads((tmp_path / out / "summary.json").read_text())["max_overlap_m"]
+        assert overlap == pytest.approx(5.0 * math.sqrt(mass / (factor * 1e8)), rel=1e-3)
+        return overlap
+
+    kernels = tmp_path / "cache" / "kernels"
+    first = max_overlap(1.0, "one")
+    second = max_overlap(4.0, "four")
+    assert second == pytest.approx(first / 2.0, rel=1e-3)
+    built = sorted(p.name for p in kernels.glob("*.py"))
+    max_overlap(4.0, "again")  # nothing changed: the kernel is reused, not rebuilt
+    assert sorted(p.name for p in kernels.glob("*.py")) == built
