@@ -158,7 +158,8 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
             "wall) at every step"),
         Key("vtk", "bool", None, "", "write a ParaView time series (particles.pvd, walls.vtu); default: "
             "on for scenes without [impact]"),
-        Key("interval", "float", None, "s", "simulated time between VTK frames; default: run.end_time / 50",
+        Key("interval", "float", None, "s", "simulated time between VTK frames (t = 0 and the final state are always frames); "
+            "default: run.end_time / 50",
             low=0.0, low_open=True),
         Key("contacts", "bool", False, "", "also write the contact network (particles_contacts.pvd: lines "
             "between touching particles with cell array normal_force)"),

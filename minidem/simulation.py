@@ -566,16 +566,24 @@ class Simulation:
         scene = self.scene
         self.start_time = 0.0
         self.start_position, self.start_velocity = scene.position, scene.velocity
+        walls = scene.walls
+        one_sphere_and_planes = (scene.n_particles == 1 and not walls.cylinder_base.shape[0]
+                                 and not walls.triangles.shape[0])
+        # the free flight before first touch, also when it is stepped: the default
+        # run.end_time of a single impact allows for it (a sphere released far from the
+        # wall must still reach it)
+        self.flight_time, flight = 0.0, None
+        if one_sphere_and_planes:
+            flight = integrate.flight_to_first_touch(scene.position[0], scene.velocity[0], float(scene.radius[0]),
+                                                     scene.wall_point, scene.wall_normal, scene.gravity)
+            self.flight_time = flight[0] if flight is not None else 0.0
         if scene.integrator != "analytic_flight":
             return
-        walls = scene.walls
-        if scene.n_particles != 1 or walls.cylinder_base.shape[0] or walls.triangles.shape[0]:
+        if not one_sphere_and_planes:
             raise ScenarioError(f"{scene.source}: run.integrator = \"analytic_flight\" needs one particle and "
                                 f"plane walls only (the scene has {scene.n_particles} particles, "
                                 f"{walls.cylinder_base.shape[0]} cylinders, {walls.triangles.shape[0]} triangles); "
                                 "use \"velocity_verlet\"")
-        flight = integrate.flight_to_first_touch(scene.position[0], scene.velocity[0], float(scene.radius[0]),
-                                                 scene.wall_point, scene.wall_normal, scene.gravity)
         if flight is None:
             return
         duration, position, velocity, _ = flight
@@ -667,7 +675,7 @@ class Simulation:
         tracking = (probe_wall, probe, stats, status)
         stop_at_separation = scene.stop == "separation"
         end_time = scene.end_time if scene.end_time is not None else \
-            self.start_time + 100.0 * self.reference_contact_time
+            max(self.start_time, self.flight_time) + 100.0 * self.reference_contact_time
         if not math.isfinite(end_time):
             raise ScenarioError(f"{scene.source}: run.end_time is needed: the scene has no contact to stop at")
         start_time = self.start_time  # > 0 after an analytic flight to first touch
@@ -872,6 +880,12 @@ class Simulation:
                 self.interrupted_at = (start_time + good["loop"]["steps"] * self.dt,
                                        write_state(checkpoint.CHECKPOINT, good, "checkpoint"))
             raise
+        if frames_on and loop["last_frame_step"] != loop["steps"]:
+            # the state the run ends in is always a frame (also when the output interval
+            # does not divide the run, or exceeds it): ParaView's last frame is the result
+            on_frame(start_time + loop["steps"] * self.dt, state)
+            loop["frames"] += 1
+            loop["last_frame_step"] = loop["steps"]
         wall_time = wallclock.perf_counter() - started
         if policy is not None:
             write_state(checkpoint.FINAL_STATE, snapshot(), "final")

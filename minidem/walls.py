@@ -119,21 +119,59 @@ def cylinder_surface(base, axis, radius, length, segments: int = 48) -> tuple[np
 
 
 def display_meshes(walls: WallSet, extent_lower, extent_upper) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Surfaces of all walls for VTK: planes become squares covering the scene's extent."""
-    lower, upper = np.asarray(extent_lower, dtype=np.float64), np.asarray(extent_upper, dtype=np.float64)
-    centre, half = 0.5 * (lower + upper), 0.5 * float(np.max(upper - lower)) or 1.0
+    """Surfaces of all walls for VTK, one mesh per wall in the order of ``WallSet``.
+
+    An infinite plane is drawn as the part of it that faces the particles' side of every
+    other plane (a box's faces come out as the box's own rectangles, a hopper's walls
+    meet at their edges), within a square around the scene: the particles' extent, grown
+    to reach every plane's reference point."""
     from minidem.output.vtk import plane_to_quad
 
+    lower, upper = np.asarray(extent_lower, dtype=np.float64), np.asarray(extent_upper, dtype=np.float64)
+    centre = 0.5 * (lower + upper)
+    half = 0.5 * float(np.max(upper - lower)) or 1.0
+    planes = list(zip(walls.plane_point, walls.plane_normal))
+    if len(planes) > 1:
+        # 2x the farthest reference point: large enough that the clipping planes, not
+        # the square, bound a box face
+        half = max(half, 2.0 * max(float(np.linalg.norm(point - centre)) for point, _ in planes))
     out = []
-    for point, normal in zip(walls.plane_point, walls.plane_normal):
+    for index, (point, normal) in enumerate(planes):
         # the square is centred on the projection of the scene's centre onto the plane
         foot = centre - float(np.dot(centre - point, normal)) * normal
-        out.append(plane_to_quad(foot, normal, half))
+        square = plane_to_quad(foot, normal, half)
+        polygon = square[0]
+        for other, (other_point, other_normal) in enumerate(planes):
+            if other != index:
+                polygon = _clip_polygon(polygon, other_point, other_normal, 1e-12 * half)
+        if len(polygon) < 3:  # nothing faces the particles: show the plain square
+            out.append(square)
+        else:  # a convex polygon: a fan of triangles
+            fan = np.array([[0, k, k + 1] for k in range(1, len(polygon) - 1)], dtype=np.int64)
+            out.append((np.asarray(polygon), fan))
     for c in range(walls.cylinder_base.shape[0]):
         out.append(cylinder_surface(walls.cylinder_base[c], walls.cylinder_axis[c], walls.cylinder_radius[c],
                                     walls.cylinder_length[c]))
     out.extend(walls.meshes)
     return out
+
+
+def _clip_polygon(vertices, point, normal, tolerance: float) -> np.ndarray:
+    """The part of a convex polygon on the side ``normal`` points to (Sutherland-Hodgman
+    against one plane); the vertex order, and so the face normal, is kept."""
+    vertices = np.asarray(vertices)
+    if len(vertices) == 0:
+        return vertices
+    side = (vertices - point) @ normal
+    kept = []
+    for k in range(len(vertices)):
+        current, following = vertices[k], vertices[(k + 1) % len(vertices)]
+        here, there = side[k], side[(k + 1) % len(vertices)]
+        if here >= -tolerance:
+            kept.append(current)
+        if (here >= -tolerance) != (there >= -tolerance):
+            kept.append(current + (here / (here - there)) * (following - current))
+    return np.array(kept).reshape(-1, 3)
 
 
 def initial_wall_overlaps(walls: WallSet, position: np.ndarray, radius: np.ndarray,

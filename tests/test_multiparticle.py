@@ -343,7 +343,8 @@ def test_vtk_series_reads_back_with_meshio_and_vtk(tmp_path):
             assert grid.GetPointData().GetArray(name) is not None
         assert np.allclose(vtk_to_numpy(grid.GetPointData().GetArray("radius")), scene.radius)
     walls = meshio.read(tmp_path / "walls.vtu")
-    assert sum(len(block.data) for block in walls.cells) == 5  # the open box: 5 quads
+    wall_ids = np.concatenate(walls.cell_data["wall_id"])
+    assert sorted(set(wall_ids.tolist())) == [0, 1, 2, 3, 4]  # the open box: 5 faces (triangle fans)
     contacts = sorted(tmp_path.glob("particles_contacts_*.vtu"))
     assert len(contacts) == 6
     # (meshio cannot read a grid with zero cells, such as the t = 0 network: last frame)
@@ -351,3 +352,24 @@ def test_vtk_series_reads_back_with_meshio_and_vtk(tmp_path):
     normal_force = np.concatenate(last.cell_data["normal_force"])
     # compressive on the whole (the damped Hertz force may pull slightly at unloading)
     assert len(normal_force) > 0 and np.all(np.isfinite(normal_force)) and normal_force.sum() > 0
+
+
+def test_the_state_a_run_ends_in_is_always_a_frame(tmp_path):
+    # review: with output.interval > run.end_time only t = 0 was written; and an interval
+    # that does not divide the run lost its end. Frames: every interval, then the end.
+    from minidem.output.vtk import SimulationFrames
+
+    scene = scenario.load_scene("scenarios/settle.toml", DEEP_PILE[1:] + [
+        "fill.0.count=100", "run.end_time=0.01", "output.interval=0.006", "run.threads=1"])
+    sim = simulation.Simulation(scene)
+    frames = SimulationFrames(sim, tmp_path)
+    result = sim.run(on_frame=frames)
+    frames.close()
+    datasets = ET.parse(tmp_path / "particles.pvd").getroot().findall(".//DataSet")
+    assert [float(d.get("timestep")) for d in datasets] == pytest.approx([0.0, 0.006, result.time])
+    assert result.time == pytest.approx(0.01, abs=scene.dt if scene.dt else 1e-6)
+    import meshio
+
+    last = meshio.read(tmp_path / datasets[-1].get("file"))
+    assert np.array_equal(last.points, result.position)
+

@@ -8,6 +8,7 @@ SPIN PAIRS CYLINDERS MESHES PARALLEL): each variant costs 10-30 s of compilation
 
 import copy
 import math
+from pathlib import Path
 
 import meshio
 import numpy as np
@@ -18,6 +19,7 @@ from minidem import analysis, particles, scenario, simulation, walls
 GLASS = {"youngs_modulus": 70e9, "poisson_ratio": 0.3, "density": 2650.0}
 SPEED = 5.0
 RADIUS = 0.01  # m: small enough to lay many independent impacts side by side
+SETTLE = Path(__file__).resolve().parents[1] / "scenarios" / "settle.toml"
 
 
 def run(data, on_frame=None):
@@ -473,3 +475,27 @@ def test_stop_at_separation_runs_the_serial_tracked_loops():
     assert not simulation.Simulation(scenario.build_scene(copy.deepcopy(data))).parallel
     data["run"] = {"stop": "time", "end_time": 0.1}
     assert simulation.Simulation(scenario.build_scene(data)).parallel
+
+
+def test_box_walls_are_drawn_as_the_box_faces():
+    """walls.vtu for scenarios/settle.toml's open box (x, y in 0..0.1 m, floor z = 0): each
+    plane is drawn as its part that faces the particles' side of the other planes, so the
+    floor is the box's bottom exactly, not a square sized from the particles (review:
+    the side walls reached below the floor). Every face lies in its plane and its
+    triangles' right-hand normal is the wall's inward normal (the lit side faces the
+    particles in ParaView)."""
+    scene = scenario.load_scene(SETTLE, ["fill.0.count=200"], "-")
+    lower = (scene.position - scene.radius[:, None]).min(axis=0)
+    upper = (scene.position + scene.radius[:, None]).max(axis=0)
+    meshes = walls.display_meshes(scene.walls, lower, upper)
+    assert len(meshes) == 5
+    for (vertices, faces), point, normal in zip(meshes, scene.walls.plane_point, scene.walls.plane_normal):
+        assert np.abs((vertices - point) @ normal).max() < 1e-12  # in its plane
+        a, b, c = (vertices[faces[:, k]] for k in range(3))
+        assert np.all(np.cross(b - a, c - a) @ normal > 0.0)
+        # inside the box's side walls and above its floor
+        assert vertices[:, :2].min() >= -1e-12 and vertices[:, :2].max() <= 0.1 + 1e-12
+        assert vertices[:, 2].min() >= -1e-12
+    floor = next(v for (v, _), n in zip(meshes, scene.walls.plane_normal) if n[2] == 1.0)
+    assert floor[:, 0].min() == pytest.approx(0.0, abs=1e-12) and floor[:, 0].max() == pytest.approx(0.1)
+    assert floor[:, 1].min() == pytest.approx(0.0, abs=1e-12) and floor[:, 1].max() == pytest.approx(0.1)
