@@ -266,11 +266,17 @@ class Scene:
 def read_toml(path: str | Path) -> dict:
     path = Path(path)
     try:
-        text = path.read_text()
+        raw = path.read_bytes()
     except FileNotFoundError:
         raise ScenarioError(f"{path}: no such scenario file") from None
     except OSError as exc:
         raise ScenarioError(f"{path}: cannot read: {exc.strerror}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise ScenarioError(f"{path}: not UTF-8 text ({exc.reason}: byte 0x{raw[exc.start]:02x} at offset "
+                            f"{exc.start}, line {line}); a scenario file is TOML, which must be UTF-8") from None
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -412,6 +418,41 @@ def _check_table(table: Any, keys: tuple[Key, ...], where: str, errors: _Errors,
                 if key.kind == "float_or_auto" and key.default == "auto":
                     out[key.name] = None  # as if "auto" had been written
     return out
+
+
+def output_origin(out_option, data: dict) -> str:
+    """Where a run's output directory came from (for error messages): --out, the
+    scenario's output.directory, or the default out/<stem>."""
+    if out_option is not None:
+        return "--out"
+    if isinstance(data.get("output"), dict) and data["output"].get("directory"):
+        return "output.directory"
+    return "the default output directory"
+
+
+def prepare_output_directory(directory: str | Path, given_by: str, source: str) -> Path:
+    """Create the output directory (and its parents) and check that files can be written
+    in it, before anything is compiled or run: a bad directory is bad input, not a run
+    that fails at its end and loses the result. ``given_by`` names where the directory
+    came from (``--out``, ``output.directory``, or the default); ``source`` is the scenario file."""
+    import os
+    import tempfile
+
+    directory = Path(directory)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        handle, probe = tempfile.mkstemp(prefix=".minidem-write-test-", dir=directory)
+        os.close(handle)
+        os.unlink(probe)
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        if isinstance(exc, FileExistsError) or (directory.exists() and not directory.is_dir()):
+            reason = "exists and is not a directory"
+        elif isinstance(exc, NotADirectoryError):
+            reason = "a parent of it is a file, not a directory"
+        raise ScenarioError(f"{source}: {given_by} '{directory}': cannot use it as the output directory: "
+                            f"{reason}; give a directory that can be created and written in") from None
+    return directory
 
 
 def load_scene(path: str | Path, overrides: list[str] = (), output_directory: str | Path | None = None) -> Scene:
