@@ -62,8 +62,8 @@ def command_run(args) -> int:
         if given is not None and given is not False:
             warnings.warn(f"{option} ignored: {args.file} has no [sweep] table (a single run)")
     scene = scenario.load_scene(args.file, args.set, args.out)
+    directory = scenario.prepare_output_directory(scene.output_directory, scenario.output_origin(args.out, scene.raw), args.file)
     sim = simulation.Simulation(scene)
-    directory = scene.output_directory
     policy = checkpoint.Policy(directory, scene.checkpoint_interval, scene.checkpoint_wall_interval)
     resume_from = checkpoint.load_for_resume(sim, directory) if args.resume else None
     if not args.quiet:

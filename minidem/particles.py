@@ -102,10 +102,21 @@ def read_particles(path: str | Path) -> dict[str, np.ndarray]:
         missing = [c for c in ("x", "y", "z", "radius") if c not in names]
         if missing:
             raise ValueError(f"particle CSV '{path}' lacks column(s) {missing}; its header has {list(names)}")
+        for triple in (("vx", "vy", "vz"), ("wx", "wy", "wz")):
+            present = [k for k in triple if k in names]
+            if present and len(present) < 3:
+                raise ValueError(f"particle CSV '{path}' has column(s) {present} but not "
+                                 f"{[k for k in triple if k not in names]}: give all of {', '.join(triple)} or none")
 
         def columns(keys):
             return (np.column_stack([table[k] for k in keys]) if all(k in names for k in keys)
                     else np.zeros((len(table), 3)))
+
+        labels = {"position": ("column 'x'", "column 'y'", "column 'z'"), "radius": ("column 'radius'",),
+                  "velocity": ("column 'vx'", "column 'vy'", "column 'vz'"),
+                  "angular_velocity": ("column 'wx'", "column 'wy'", "column 'wz'")}
+        where = lambda row: f"data row {row + 1} (counting from 1 after the header)"  # noqa: E731
+        unit, note = "row", " (an empty cell reads as NaN)"
 
         out = {"position": columns(("x", "y", "z")), "radius": np.asarray(table["radius"], dtype=np.float64),
                "velocity": columns(("vx", "vy", "vz")), "angular_velocity": columns(("wx", "wy", "wz"))}
@@ -125,6 +136,22 @@ def read_particles(path: str | Path) -> dict[str, np.ndarray]:
                "velocity": np.asarray(mesh.point_data.get("velocity", np.zeros((n, 3))), dtype=np.float64).reshape(n, 3),
                "angular_velocity": np.asarray(mesh.point_data.get("angular_velocity", np.zeros((n, 3))),
                                               dtype=np.float64).reshape(n, 3)}
-    if not np.all(np.isfinite(out["position"])) or not np.all(out["radius"] > 0):
-        raise ValueError(f"particle file '{path}': positions must be finite and radii > 0")
+        labels = {"position": ("point coordinate x", "point coordinate y", "point coordinate z"),
+                  "radius": ("point array 'radius'",),
+                  "velocity": tuple(f"point array 'velocity' component {c}" for c in "xyz"),
+                  "angular_velocity": tuple(f"point array 'angular_velocity' component {c}" for c in "xyz")}
+        where = lambda row: f"point {row} (counting from 0)"  # noqa: E731
+        unit, note = "point", ""
+    for name in ("position", "radius", "velocity", "angular_velocity"):
+        values = out[name].reshape(len(out[name]), -1)
+        bad = ~np.isfinite(values)
+        if name == "radius":
+            bad |= ~(values > 0)
+        if np.any(bad):
+            row, column = (int(k) for k in np.argwhere(bad)[0])
+            count = int(np.count_nonzero(np.any(bad, axis=1)))
+            expected = "a finite number > 0 (m)" if name == "radius" else "a finite number" + note
+            raise ValueError(f"particle file '{path}': {labels[name][column]} ({name}) of {where(row)} is "
+                             f"{float(values[row, column]):g}, expected {expected}"
+                             + (f"; {count - 1} more {unit}(s) like it" if count > 1 else ""))
     return out

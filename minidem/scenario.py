@@ -193,6 +193,24 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
 }
 
 
+# The keys each wall `type` and fill `kind` uses: a key of the section that the chosen
+# type/kind does not use is refused (it would be silently ignored), and the reference
+# lists these sets. "type" defaults to "plane".
+KEYS_BY_KIND: dict[str, tuple[str, dict[str, tuple[str, ...]]]] = {
+    "walls": ("type", {
+        "plane": ("type", "material", "point", "normal"),
+        "box": ("type", "material", "lower", "upper", "open_top"),
+        "cylinder": ("type", "material", "point", "axis", "radius", "length", "bottom"),
+        "mesh": ("type", "material", "file", "scale", "offset"),
+    }),
+    "fill": ("kind", {
+        "lattice": ("kind", "material", "radius", "lower", "upper", "spacing", "count", "jitter", "seed", "velocity"),
+        "random": ("kind", "material", "radius", "radius_max", "lower", "upper", "count", "seed", "velocity"),
+        "file": ("kind", "material", "file"),
+    }),
+}
+
+
 @dataclasses.dataclass(frozen=True)
 class Material:
     name: str
@@ -267,11 +285,17 @@ class Scene:
 def read_toml(path: str | Path) -> dict:
     path = Path(path)
     try:
-        text = path.read_text()
+        raw = path.read_bytes()
     except FileNotFoundError:
         raise ScenarioError(f"{path}: no such scenario file") from None
     except OSError as exc:
         raise ScenarioError(f"{path}: cannot read: {exc.strerror}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise ScenarioError(f"{path}: not UTF-8 text ({exc.reason}: byte 0x{raw[exc.start]:02x} at offset "
+                            f"{exc.start}, line {line}); a scenario file is TOML, which must be UTF-8") from None
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -415,6 +439,58 @@ def _check_table(table: Any, keys: tuple[Key, ...], where: str, errors: _Errors,
     return out
 
 
+def output_origin(out_option, data: dict) -> str:
+    """Where a run's output directory came from (for error messages): --out, the
+    scenario's output.directory, or the default out/<stem>."""
+    if out_option is not None:
+        return "--out"
+    if isinstance(data.get("output"), dict) and data["output"].get("directory"):
+        return "output.directory"
+    return "the default output directory"
+
+
+def prepare_output_directory(directory: str | Path, given_by: str, source: str) -> Path:
+    """Create the output directory (and its parents) and check that files can be written
+    in it, before anything is compiled or run: a bad directory is bad input, not a run
+    that fails at its end and loses the result. ``given_by`` names where the directory
+    came from (``--out``, ``output.directory``, or the default); ``source`` is the scenario file."""
+    import os
+    import tempfile
+
+    directory = Path(directory)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        handle, probe = tempfile.mkstemp(prefix=".minidem-write-test-", dir=directory)
+        os.close(handle)
+        os.unlink(probe)
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        if isinstance(exc, FileExistsError) or (directory.exists() and not directory.is_dir()):
+            reason = "exists and is not a directory"
+        elif isinstance(exc, NotADirectoryError):
+            reason = "a parent of it is a file, not a directory"
+        raise ScenarioError(f"{source}: {given_by} '{directory}': cannot use it as the output directory: "
+                            f"{reason}; give a directory that can be created and written in") from None
+    return directory
+
+
+def _check_kind_keys(table: Any, section: str, kind: Any, where: str, errors: _Errors) -> None:
+    """Refuse keys of the section that the table's type/kind does not use (KEYS_BY_KIND)."""
+    selector, by_kind = KEYS_BY_KIND[section]
+    if not isinstance(table, dict) or kind not in by_kind:
+        return  # not a table, or a bad type/kind: reported already
+    known = {k.name for k in SCHEMA[section][1]}
+    default = "" if selector in table else ", the default"
+    for name in table:
+        if name in known and name not in by_kind[kind]:
+            users = [k for k, names in by_kind.items() if name in names]
+            hint = ("; velocities come from the file's vx, vy, vz columns (a VTK file's 'velocity' array)"
+                    if section == "fill" and kind == "file" and name == "velocity" else "")
+            errors.add(f"{where}.{name}", f'not used by {selector} = "{kind}"{default} (used by '
+                       + " or ".join(f'{selector} = "{u}"' for u in users) + f"); valid keys for "
+                       f"{selector} = \"{kind}\": {', '.join(by_kind[kind])}{hint}")
+
+
 def load_scene(path: str | Path, overrides: list[str] = (), output_directory: str | Path | None = None) -> Scene:
     data = apply_overrides(read_toml(path), list(overrides))
     return build_scene(data, str(path), output_directory)
@@ -490,6 +566,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         where = f"walls[{index}]"
         values = _check_table(table, SCHEMA["walls"][1], where, errors)
         kind = values.get("type")
+        _check_kind_keys(table, "walls", kind, where, errors)
         if kind in ("box", "cylinder", "mesh"):
             _shaped_wall(kind, values, where, source, errors, material_of, wall_point, wall_normal,
                          wall_material, cylinders, meshes, index)
@@ -671,6 +748,7 @@ def _fill(table, where, source, errors, material_of, position, velocity, spin, r
 
     values = _check_table(table, SCHEMA["fill"][1], where, errors)
     kind = values.get("kind")
+    _check_kind_keys(table, "fill", kind, where, errors)
     material = material_of(values.get("material"), f"{where}.material")
     try:
         if kind == "lattice" and _required(values, ("radius", "lower", "upper", "spacing"), "a lattice", where, errors):
@@ -741,6 +819,9 @@ def _check_geometry(scene: Scene, max_reported: int = 5) -> None:
     """Refuse particles behind or inside a wall and particles overlapping each other at
     t = 0: the first step would release the stored elastic energy as a blast."""
     errors = _Errors(scene.source)
+    # (particle, message) for every particle behind or inside a wall, planes first; the
+    # first max_reported are listed (a whole fill behind a wall is one mistake, not 4000)
+    wall_findings: list[tuple[int, str]] = []
     for w in range(scene.wall_point.shape[0]):
         # (w counts planes: a box contributes several, a cylinder's bottom one; so the
         # plane is named by its geometry, not by a [[walls]] index)
@@ -748,24 +829,25 @@ def _check_geometry(scene: Scene, max_reported: int = 5) -> None:
                  f"{scene.wall_normal[w].tolist()})")
         overlap = scene.radius - (scene.position - scene.wall_point[w]) @ scene.wall_normal[w]
         for i in np.flatnonzero(overlap >= scene.radius):
-            errors.add(_particle_name(scene, i), f"centre is on or behind {plane}; move the particle to "
-                       "the side the normal points to, or flip the wall's normal")
+            wall_findings.append((i, f"centre is on or behind {plane}; move the particle to the side the normal "
+                                  "points to, or flip the wall's normal"))
         for i in np.flatnonzero((overlap > _TOUCH_TOLERANCE * scene.radius) & (overlap < scene.radius)):
-            errors.add(_particle_name(scene, i), f"overlaps {plane} by {overlap[i]:.3g} m at t = 0; move it "
-                       f"at least that far along the normal")
+            wall_findings.append((i, f"overlaps {plane} by {overlap[i]:.3g} m at t = 0; move it at least that "
+                                  "far along the normal"))
     if scene.walls is not None:
         # cylinders and meshes as planes: every contact, whatever the wall, starts at first
         # touch during the run, with zero history (docs/multi-particle.md)
         from minidem.walls import initial_wall_overlaps
 
-        reported = 0
-        found = initial_wall_overlaps(scene.walls, scene.position, scene.radius, _TOUCH_TOLERANCE)
-        for i, wall, overlap, behind in found[:max_reported]:
-            errors.add(_particle_name(scene, i), f"centre is on or outside {wall}; place it inside" if behind else
-                       f"overlaps {wall} by {overlap:.3g} m at t = 0; move it at least that far away from the wall")
-            reported += 1
-        if len(found) > reported:
-            errors.add("", f"... and {len(found) - reported} more particle-wall overlaps")
+        for i, wall, overlap, behind in initial_wall_overlaps(scene.walls, scene.position, scene.radius,
+                                                               _TOUCH_TOLERANCE):
+            wall_findings.append((i, f"centre is on or outside {wall}; place it inside" if behind else
+                                  f"overlaps {wall} by {overlap:.3g} m at t = 0; move it at least that far away "
+                                  "from the wall"))
+    for i, message in wall_findings[:max_reported]:
+        errors.add(_particle_name(scene, i), message)
+    if len(wall_findings) > max_reported:
+        errors.add("", f"... and {len(wall_findings) - max_reported} more particle-wall overlaps")
     if scene.n_particles > 1:
         from minidem.neighbours import build_pairs
 
@@ -792,8 +874,13 @@ def reference_markdown() -> str:
              "and bound below is the one the validator applies. Units are SI throughout.", ""]
     for section, (shape, keys, description) in SCHEMA.items():
         header = {"tables": f"[{section}.NAME]", "array": f"[[{section}]]"}.get(shape, f"[{section}]")
-        lines += [f"## `{header}`", "", description, "", "| key | type | unit | default | bounds | meaning |",
-                  "|---|---|---|---|---|---|"]
+        lines += [f"## `{header}`", "", description, ""]
+        if section in KEYS_BY_KIND:
+            selector, by_kind = KEYS_BY_KIND[section]
+            lines += [f"Keys by `{selector}` (any other key of this table is refused):", ""]
+            lines += [f'- `{selector} = "{kind}"`: ' + ", ".join(f"`{k}`" for k in names) for kind, names in by_kind.items()]
+            lines.append("")
+        lines += ["| key | type | unit | default | bounds | meaning |", "|---|---|---|---|---|---|"]
         for key in keys:
             default = "required" if key.default is REQUIRED else ("-" if key.default is None else f"`{key.default}`")
             kind = key.kind.replace("float_or_auto", 'float or "auto"').replace("vec3", "[x, y, z]")

@@ -542,6 +542,7 @@ def command(args, data: dict) -> int:
     workers = getattr(args, "workers", None)
     if workers is not None and workers < 0:
         raise ScenarioError(f"--workers {workers}: must be >= 0 (0: one per CPU)")
+    scenario.prepare_output_directory(directory, scenario.output_origin(args.out, sweep.base), str(args.file))
     executor = executors.from_options(getattr(args, "scheduler", None), workers if workers is not None
                                       else sweep.workers)
     echo = (lambda text: None) if args.quiet else (lambda text: print(f"  {text}"))

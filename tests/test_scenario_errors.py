@@ -53,6 +53,18 @@ SPHERES = textwrap.dedent("""
     end_time = 1e-5
     """)
 
+# a [[fill]] appended to SPHERES: 20 lattice sites, 5 x 4 x 1, in a layer lower_z..upper_z
+FILL = textwrap.dedent("""
+    [[fill]]
+    kind = "{kind}"
+    material = "glass"
+    radius = 0.001
+    spacing = 0.003
+    lower = [0.0, 0.0, {lower_z}]
+    upper = [0.015, 0.012, {upper_z}]
+    {extra}
+    """)
+
 # id -> (scenario text or None for the base file, extra CLI args, fragments the message must hold)
 CASES = {
     "toml_syntax_error": ("[materials.glass\nyoungs_modulus = 1\n", [],
@@ -113,6 +125,35 @@ CASES = {
                              ["particles[0]", "overlaps wall 0", "by 0.001 m", "move it"]),
     "overlapping_particles": (SPHERES.format(z0=0.1, z1=0.105), [],
                               ["particles[0]: overlaps particles[1] by 0.005 m", "at least the sum of their radii"]),
+    # issue 4 of the input review: keys another wall type / fill kind uses are refused, not ignored
+    "plane_wall_with_other_types_keys": (
+        edit("normal = [0.0, 0.0, 1.0]", 'normal = [0.0, 0.0, 1.0]\nradius = 0.1\nlower = [0.0, 0.0, 0.0]\n'
+             'file = "cone.stl"'), [],
+        ['walls[0].radius: not used by type = "plane", the default (used by type = "cylinder")',
+         'walls[0].lower: not used by type = "plane"', 'walls[0].file: not used by type = "plane"',
+         'valid keys for type = "plane": type, material, point, normal']),
+    "box_wall_with_plane_and_cylinder_keys": (
+        edit("point = [0.0, 0.0, 0.0]\nnormal = [0.0, 0.0, 1.0]",
+             'type = "box"\nlower = [-1.0, -1.0, -1.0]\nupper = [1.0, 1.0, 1.0]\nnormal = [0.0, 0.0, 1.0]\n'
+             "radius = 0.5"), [],
+        ['walls[0].normal: not used by type = "box" (used by type = "plane")', 'walls[0].radius: not used by type = "box"',
+         'valid keys for type = "box": type, material, lower, upper, open_top']),
+    "lattice_fill_with_radius_max": (
+        SPHERES.format(z0=0.1, z1=0.2) + FILL.format(kind="lattice", lower_z=0.3, upper_z=0.303, extra="radius_max = 0.002"), [],
+        ['fill[0].radius_max: not used by kind = "lattice" (used by kind = "random")',
+         'valid keys for kind = "lattice": kind, material, radius, lower, upper, spacing, count, jitter, seed, '
+         "velocity"]),
+    "file_fill_with_velocity_and_radius": (
+        SPHERES.format(z0=0.1, z1=0.2) + '\n[[fill]]\nkind = "file"\nmaterial = "glass"\nfile = "beads.csv"\n'
+        "velocity = [1.0, 0.0, 0.0]\nradius = 0.001\n", [],
+        ['fill[0].velocity: not used by kind = "file" (used by kind = "lattice" or kind = "random")',
+         "velocities come from the file's vx, vy, vz columns", 'fill[0].radius: not used by kind = "file"',
+         'valid keys for kind = "file": kind, material, file']),
+    # issue 5: a whole fill behind a wall is reported as 5 particles and a count, not 20 lines
+    "fill_behind_a_plane_is_capped": (
+        SPHERES.format(z0=0.1, z1=0.2) + FILL.format(kind="lattice", lower_z=-0.05, upper_z=-0.047, extra="count = 20"), [],
+        ["fill[0] (particle 2, sphere 0 of the fill): centre is on or behind wall 0",
+         "... and 15 more particle-wall overlaps"]),
     "set_without_equals": (None, ["--set", "impact.angle_deg"],
                            ["--set 'impact.angle_deg'", "expected KEY=VALUE", "--set impact.angle_deg=30"]),
     "set_empty_key_part": (None, ["--set", "impact..angle_deg=3"], ["--set", "empty key part"]),
@@ -186,3 +227,100 @@ def test_bad_set_syntax_in_a_real_process():
     assert done.returncode == 2
     assert done.stderr == ("minidem: error: --set 'contact.law': expected KEY=VALUE, e.g. "
                            "--set impact.angle_deg=30\n")
+
+
+# --------------------------------------------------------------------------------------
+# the input review: cases that need more than one scenario text
+# --------------------------------------------------------------------------------------
+def refused(capsys, *argv) -> str:
+    """Run minidem in-process, assert exit 2 with a one-message error and no traceback."""
+    code = cli.main(list(argv))
+    message = capsys.readouterr().err
+    assert code == 2, message
+    assert message.startswith("minidem: error: "), message
+    assert "Traceback" not in message and "internal error" not in message, message
+    return message
+
+
+FILE_FILL = SPHERES.format(z0=0.1, z1=0.2) + '\n[[fill]]\nkind = "file"\nmaterial = "glass"\nfile = "{file}"\n'
+
+
+@pytest.mark.parametrize("csv, fragments", [
+    # an empty cell reads as NaN: it was accepted and the run blamed the contact law
+    ("x,y,z,radius,vx,vy,vz\n0.05,0.05,0.05,0.001,0,0,0\n0.02,0.02,0.02,0.001,,0,0\n",
+     ["column 'vx' (velocity) of data row 2", "is nan", "expected a finite number"]),
+    ("x,y,z,radius,wx,wy,wz\n0.05,0.05,0.05,0.001,0,inf,0\n",
+     ["column 'wy' (angular_velocity) of data row 1", "is inf"]),
+    ("x,y,z,radius\n0.05,0.05,0.05,0.001\n0.02,0.02,0.02,-0.001\n",
+     ["column 'radius' (radius) of data row 2", "expected a finite number > 0 (m)"]),
+    ("x,y,z,radius,vx\n0.05,0.05,0.05,0.001,1.0\n", ["has column(s) ['vx'] but not ['vy', 'vz']"]),
+])
+def test_file_fill_values_must_be_finite(csv, fragments, tmp_path, capsys):
+    (tmp_path / "beads.csv").write_text(csv)
+    path = tmp_path / "scene.toml"
+    path.write_text(FILE_FILL.format(file="beads.csv"))
+    message = refused(capsys, "run", str(path), "--out", str(tmp_path / "out"))
+    for fragment in ["scene.toml: invalid scenario", "fill[0]: particle ", "beads.csv", *fragments]:
+        assert fragment in message, f"{fragment!r} not in {message!r}"
+    assert not (tmp_path / "out" / "summary.json").exists()
+
+
+def test_vtk_file_fill_with_a_nan_velocity_names_the_array_and_point(tmp_path, capsys):
+    import meshio
+    import numpy as np
+
+    velocity = np.zeros((3, 3))
+    velocity[1, 2] = np.nan
+    meshio.Mesh(np.array([[0.05, 0.05, 0.05], [0.02, 0.02, 0.05], [0.08, 0.08, 0.05]]),
+                [("vertex", np.arange(3).reshape(-1, 1))],
+                point_data={"radius": np.full(3, 0.001), "velocity": velocity}).write(tmp_path / "beads.vtu")
+    path = tmp_path / "scene.toml"
+    path.write_text(FILE_FILL.format(file="beads.vtu"))
+    message = refused(capsys, "run", str(path), "--out", str(tmp_path / "out"))
+    assert "fill[0]: particle file" in message and "beads.vtu" in message
+    assert "point array 'velocity' component z (velocity) of point 1" in message
+
+
+def test_scenario_that_is_not_utf8_is_bad_input(tmp_path, capsys):
+    path = tmp_path / "b.toml"
+    path.write_bytes(b"\xff\xfe[x]")
+    message = refused(capsys, "run", str(path))
+    assert message == (f"minidem: error: {path}: not UTF-8 text (invalid start byte: byte 0xff at offset 0, "
+                       "line 1); a scenario file is TOML, which must be UTF-8\n")
+
+
+@pytest.fixture
+def no_compile(monkeypatch):
+    """A bad output directory must be refused before anything is compiled or run."""
+    from minidem import simulation
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the simulation was built before the output directory was checked")
+
+    monkeypatch.setattr(simulation, "Simulation", refuse)
+
+
+@pytest.mark.parametrize("out, reason", [
+    ("afile", "exists and is not a directory"),
+    ("afile/sub", "a parent of it is a file, not a directory"),
+    ("/proc/minidem-no-such/out", "No such file or directory"),
+])
+def test_unusable_output_directory_is_refused_up_front(out, reason, tmp_path, capsys, monkeypatch, no_compile):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("not a directory\n")
+    message = refused(capsys, "run", str(OBLIQUE), "--out", out)
+    assert message == (f"minidem: error: {OBLIQUE}: --out '{out}': cannot use it as the output directory: "
+                       f"{reason}; give a directory that can be created and written in\n")
+    assert (tmp_path / "afile").read_text() == "not a directory\n"
+
+
+def test_unusable_output_directory_from_the_scenario_or_a_sweep_is_named(tmp_path, capsys, monkeypatch, no_compile):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("")
+    message = refused(capsys, "run", str(OBLIQUE), "--set", "output.directory=afile")
+    assert "output.directory 'afile': cannot use it as the output directory: exists and is not a directory" in message
+    path = tmp_path / "sweep.toml"
+    path.write_text(BASE + '\n[sweep]\ncases = {"impact.angle_deg" = [1.0, 5.0]}\n')
+    message = refused(capsys, "run", str(path), "--out", "afile")
+    assert f"{path}: --out 'afile': cannot use it as the output directory" in message
+    assert (tmp_path / "afile").read_text() == ""
