@@ -211,3 +211,16 @@ def test_cli_doc_names_every_command_and_option():
                 missing += [f"{name} {o}" for a in sub._actions for o in a.option_strings
                             if o.startswith("--") and o != "--help" and f"`{o}" not in text]
     assert not missing, f"docs/cli.md does not describe: {missing}"
+
+
+def test_cli_doc_sample_error_is_the_real_message(tmp_path, monkeypatch):
+    """docs/cli.md shows the error for a misspelt key in the oblique scenario: it must be
+    what minidem prints (the valid keys of [impact] change when the schema does)."""
+    text = (DOCS / "cli.md").read_text()
+    start = text.index("```\nminidem: error: my.toml: invalid scenario") + 4
+    sample = text[start:text.index("```", start)].rstrip("\n")
+    (tmp_path / "my.toml").write_text(OBLIQUE.read_text().replace("speed = 5.0", "sped = 5.0"))
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(scenario.ScenarioError) as info:
+        scenario.load_scene("my.toml")
+    assert sample == f"minidem: error: {info.value}"
