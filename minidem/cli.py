@@ -225,7 +225,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", type=Path, default=None, help="output directory (overrides output.directory)")
     run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                      help="override a scenario value, dotted keys (repeatable): --set impact.angle_deg=30")
-    run.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    run.add_argument("--quiet", action="store_true",
+                     help="print only errors and 'minidem: warning:' messages (to standard error): no header, "
+                     "summary or progress bar; the result's warnings stay in summary.json (sweep.csv for a sweep)")
     run.add_argument("--workers", type=int, default=None, metavar="N",
                      help="local worker processes for a [sweep] scenario (default: sweep.workers; 0: one per CPU)")
     run.add_argument("--scheduler", default=None, metavar="ADDRESS",

@@ -39,7 +39,8 @@ class Parameter:
 
     ``default=None`` means "derived by ``prepare`` when not given" (for example the
     linear-spring stiffness calibrated from the Hertz contact time). ``low``/``high``
-    are inclusive bounds unless ``low_open``/``high_open`` say otherwise.
+    are inclusive bounds unless ``low_open``/``high_open`` say otherwise; values must be
+    finite, so an infinite bound is never reached (printed as an open side).
     """
 
     name: str
@@ -66,8 +67,10 @@ class Parameter:
         return None
 
     def bounds_text(self) -> str:
-        lo = "(" if self.low_open else "["
-        hi = ")" if self.high_open else "]"
+        """The bounds in interval notation, as ``minidem laws`` and error messages print
+        them: an infinite side is always open (``[0, inf)``), since values must be finite."""
+        lo = "(" if self.low_open or math.isinf(self.low) else "["
+        hi = ")" if self.high_open or math.isinf(self.high) else "]"
         return f"{lo}{self.low:g}, {self.high:g}{hi}"
 
 

@@ -211,3 +211,62 @@ def test_cli_doc_names_every_command_and_option():
                 missing += [f"{name} {o}" for a in sub._actions for o in a.option_strings
                             if o.startswith("--") and o != "--help" and f"`{o}" not in text]
     assert not missing, f"docs/cli.md does not describe: {missing}"
+
+
+def test_cli_doc_sample_error_is_the_real_message(tmp_path, monkeypatch):
+    """docs/cli.md shows the error for a misspelt key in the oblique scenario: it must be
+    what minidem prints (the valid keys of [impact] change when the schema does)."""
+    text = (DOCS / "cli.md").read_text()
+    start = text.index("```\nminidem: error: my.toml: invalid scenario") + 4
+    sample = text[start:text.index("```", start)].rstrip("\n")
+    (tmp_path / "my.toml").write_text(OBLIQUE.read_text().replace("speed = 5.0", "sped = 5.0"))
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(scenario.ScenarioError) as info:
+        scenario.load_scene("my.toml")
+    assert sample == f"minidem: error: {info.value}"
+
+
+def _guide_block(text: str, marker: str, lang: str) -> str:
+    start = text.index(f"```{lang}\n", text.index(marker)) + len(lang) + 4
+    return text[start:text.index("```", start)]
+
+
+def _code_without_docstrings(source: str) -> str:
+    import ast
+
+    tree = ast.parse(source)
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (isinstance(body, list) and body and isinstance(body[0], ast.Expr)
+                and isinstance(body[0].value, ast.Constant) and isinstance(body[0].value.value, str)):
+            node.body = body[1:] or [ast.Pass()]
+    return ast.dump(tree)
+
+
+def test_contact_law_guide_shows_the_example_plugin_as_it_is():
+    """The guide's pyproject.toml, hook and law.py, copied as written, are the example
+    plugin (comments and docstrings aside): a reader who follows it gets a working law."""
+    import ast
+    import tomllib
+
+    text = (DOCS / "writing-a-contact-law.md").read_text()
+    plugin = DOCS.parent / "plugins" / "minidem-walton-braun"
+    package = plugin / "src" / "minidem_walton_braun"
+    law = _guide_block(text, "**The law**", "python")
+    assert _code_without_docstrings(law) == _code_without_docstrings((package / "law.py").read_text())
+    hook = ast.parse(_guide_block(text, "**The hook**", "python")).body
+    shipped = ast.parse((package / "__init__.py").read_text()).body
+    assert [ast.dump(n) for n in hook] == [ast.dump(n) for n in shipped
+                                           if isinstance(n, (ast.ImportFrom, ast.FunctionDef))]
+    guide_toml = tomllib.loads(_guide_block(text, "**pyproject.toml.**", "toml"))
+    shipped_toml = tomllib.loads((plugin / "pyproject.toml").read_text())
+
+    def subset(small, big, where="pyproject.toml"):
+        for key, value in small.items():
+            assert key in big, f"{where}.{key} is in the guide but not in the plugin"
+            if isinstance(value, dict):
+                subset(value, big[key], f"{where}.{key}")
+            else:
+                assert value == big[key], f"{where}.{key}: guide {value!r}, plugin {big[key]!r}"
+
+    subset(guide_toml, shipped_toml)

@@ -316,7 +316,7 @@ def test_minidem_laws_lists_plugins_with_package_version_and_broken_ones(fake_si
     by_name = {law["name"]: law for law in payload["laws"]}
     assert by_name["fake_spring"]["package"] == "minidem-fakeplugin"
     assert by_name["fake_spring"]["parameters"][0] == {
-        "name": "stiffness", "default": 1e8, "unit": "N/m", "bounds": "(0, inf]", "required": False,
+        "name": "stiffness", "default": 1e8, "unit": "N/m", "bounds": "(0, inf)", "required": False,
         "description": "normal stiffness"}
     assert {"plugin": "raises", "law": None} in [{k: b[k] for k in ("plugin", "law")} for b in payload["broken"]]
 
@@ -347,3 +347,18 @@ def test_verify_catches_a_law_that_depends_on_the_frame(fake_site, monkeypatch):
     assert invariance.passed is False, invariance.value
     assert checks["sphere-sphere forces equal and opposite"].passed, checks["sphere-sphere forces equal and opposite"]
 
+
+
+def test_bounds_print_an_unbounded_side_open_because_values_must_be_finite():
+    friction = laws.Parameter("friction", None, "-", "mu", low=0.0, required=True)
+    stiffness = laws.Parameter("stiffness", None, "N/m", "k", low=0.0, low_open=True)
+    assert friction.bounds_text() == "[0, inf)"
+    assert stiffness.bounds_text() == "(0, inf)"
+    assert laws.Parameter("x", 0.0, "-", "x").bounds_text() == "(-inf, inf)"
+    assert laws.Parameter("e", 1.0, "-", "e", low=0.0, high=1.0, low_open=True).bounds_text() == "(0, 1]"
+    assert friction.check(float("inf")) == "must be finite, got inf"
+    # hmd's special_case takes integers only, and says so wherever its bounds are printed
+    special = laws.registry().get("hmd").parameter("special_case")
+    assert special.bounds_text() == "one of the integers 0..5"
+    assert special.check(2.5) == "must be one of the integers 0..5, got 2.5"
+    assert special.check(3) is None

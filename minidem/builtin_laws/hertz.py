@@ -415,6 +415,9 @@ class _Choice(Parameter):
             return f"must be one of the integers {self.low:g}..{self.high:g}, got {value!r}"
         return why
 
+    def bounds_text(self) -> str:
+        return f"one of the integers {self.low:g}..{self.high:g}"
+
 
 def _law(name, description, force, history, reference, aliases=(), extra=()):
     return ContactLaw(
