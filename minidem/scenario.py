@@ -34,6 +34,7 @@ class Key:
     low: float | None = None
     high: float | None = None
     low_open: bool = False
+    high_open: bool = False  # only printed (bounds_text); the check that refuses high is a cross-key rule
     choices: tuple = ()
     required: bool = False
 
@@ -44,7 +45,8 @@ class Key:
             return ""
         lo = "-inf" if self.low is None else f"{self.low:g}"
         hi = "inf" if self.high is None else f"{self.high:g}"
-        return f"{'(' if self.low_open else '['}{lo}, {hi}{']' if self.high is not None else ')'}"
+        closed_high = self.high is not None and not self.high_open
+        return f"{'(' if self.low_open else '['}{lo}, {hi}{']' if closed_high else ')'}"
 
 
 REQUIRED = object()
@@ -118,7 +120,8 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
         Key("material", "str", REQUIRED, "", "material of the sphere"),
         Key("radius", "float", REQUIRED, "m", "sphere radius", low=0.0, low_open=True),
         Key("speed", "float", REQUIRED, "m/s", "impact speed Vi", low=0.0, low_open=True),
-        Key("angle_deg", "float", 0.0, "deg", "impact angle from the wall normal", low=0.0, high=90.0),
+        Key("angle_deg", "float", 0.0, "deg", "impact angle from the wall normal", low=0.0, high=90.0,
+            high_open=True),
         Key("gap", "float", 0.0, "m", "distance from the sphere to the wall at t = 0, travelled at the impact "
             "velocity before first touch (0: touching at t = 0)", low=0.0),
         Key("wall", "int", 0, "-", "index of the wall hit (in the order of [[walls]])", low=0),

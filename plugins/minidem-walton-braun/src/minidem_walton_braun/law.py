@@ -69,8 +69,8 @@ def contact_time(pair, constants, effective_radius, effective_mass, normal_speed
                             + math.sqrt(effective_mass / constants["unloading_stiffness"]))
 
 
-# no cache=True: minidem caches the kernel this is compiled into, keyed on this function and
-# everything it calls; numba's own cache of it would be keyed on this file alone
+# cache=True is optional: minidem caches the kernel this is compiled into, keyed on this
+# function and everything it calls
 @numba.njit
 def walton_braun_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
                        normal_velocity, tangential_increment, tangential_velocity, history):
