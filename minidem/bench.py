@@ -385,8 +385,8 @@ def section_work_precision(wp: dict, angles, figure: Path, command: str, normal_
         f"Error = largest absolute error in y1, y2 or et over the angles {', '.join(f'{a:g}' for a in angles)} deg "
         "against the reference; time = median wall time of one `Simulation(scene).run()` (set-up included, "
         "kernel compiled beforehand). Integrators (`run.integrator`, see [time-step.md](time-step.md)): velocity "
-        "Verlet, symplectic Euler, and analytic flight (the default for one sphere among planes: velocity Verlet in contact, the approach "
-        "solved in closed form up to the exact touch time). Two starts: the paper's (touching at t = 0) and "
+        "Verlet, symplectic Euler, and analytic flight (the default for one sphere among planes: velocity "
+        "Verlet in contact, the approach solved in closed form up to the exact touch time). Two starts: the paper's (touching at t = 0) and "
         f"the same impact released {APPROACH_GAP * 1e3:g} mm from the wall (`impact.gap`; no gravity, so the "
         "rebound and the reference are the paper's). On the paper's start analytic flight *is* velocity Verlet "
         "(same kernel, nothing to skip), so it is measured on the gap start only.",
