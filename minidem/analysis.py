@@ -113,14 +113,14 @@ def summary(result: RunResult) -> dict:
     warning = _impact_energy_warning(result, ratio, duration)
     out.update({
         "contact_duration_s": duration,
-        "max_overlap_m": result.max_overlap,
+        "max_overlap_m": result.max_overlap if result.contact_statistics else None,
         "energy_ratio": ratio,
         "steps": result.steps,
         "dt_s": result.dt,
         "wall_time_s": result.wall_time,
         "warnings": [warning] if warning else [],
-        "peak_normal_force_n": result.peak_normal_force,
-        "peak_tangential_force_n": result.peak_tangential_force,
+        "peak_normal_force_n": result.peak_normal_force if result.contact_statistics else None,
+        "peak_tangential_force_n": result.peak_tangential_force if result.contact_statistics else None,
         "particles": scene.n_particles,
         "contacts_at_end": result.contacts,
         "kinetic_energy_j": kinetic_energy(scene.mass, scene.inertia, result.velocity, result.angular_velocity),

@@ -231,6 +231,9 @@ class RunResult:
     neighbour_builds: int = 0
     threads: int = 1
     energy: np.ndarray | None = None  # rows (time s, translational + rotational kinetic energy J)
+    # False when the parallel loop ran: it records first touch (to the step) but not the
+    # peaks and the separation, which would need a race between threads
+    contact_statistics: bool = True
 
 
 # State arrays a checkpoint holds: particle arrays, then the contact arrays of each
@@ -899,7 +902,7 @@ class Simulation:
             max_overlap=stats[2], peak_normal_force=stats[3], peak_tangential_force=stats[4], wall_time=wall_time,
             trace=np.concatenate(trace_chunks) if trace_chunks else None, force=state.force, torque=state.torque,
             contacts=state.count_contacts(), neighbour_builds=state.builds, threads=threads,
-            energy=np.array(energy),
+            energy=np.array(energy), contact_statistics=not self.parallel,
         )
 
     def _fault_message(self, status, steps) -> str:

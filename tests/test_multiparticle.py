@@ -373,3 +373,17 @@ def test_the_state_a_run_ends_in_is_always_a_frame(tmp_path):
     last = meshio.read(tmp_path / datasets[-1].get("file"))
     assert np.array_equal(last.points, result.position)
 
+
+
+def test_a_parallel_run_reports_unrecorded_contact_peaks_as_null():
+    # review: summary.json said max_overlap_m = 0 and peak_normal_force_n = 0 for a
+    # 200-particle settle whose final state had overlaps; the parallel loop does not
+    # record peaks (a race between threads), so they are unknown, not zero
+    from minidem import analysis
+
+    scene = scenario.load_scene("scenarios/settle.toml", DEEP_PILE[1:] + ["fill.0.count=100", "run.end_time=0.02"])
+    result = simulation.Simulation(scene, kernel_flags={"PARALLEL": True}).run()  # whatever the size threshold
+    summary = analysis.summary(result)
+    assert not result.contact_statistics and result.contacts > 0
+    assert summary["max_overlap_m"] is None and summary["peak_normal_force_n"] is None
+    assert summary["peak_tangential_force_n"] is None
