@@ -36,6 +36,11 @@ _ENGINE_SOURCES = ("kernel.py", "contact.py", "integrate.py")
 # duration need the separation instant, interpolated within the step, which only the
 # serial loop can record without a race between threads.
 PARALLEL_ABOVE = 16
+# A PARALLEL kernel runs its particle loops on one thread, whatever run.threads says, for
+# scenes with fewer particles than this: each step forks and joins the threads twice,
+# which costs more than the second thread saves below this size (measured on the settle
+# scene: docs/multi-particle.md, "Threads"). The results are the same bits either way.
+PARALLEL_MIN_PARTICLES = 5000
 # scene-shape flags of the kernel specialisation block, in order
 KERNEL_FLAGS = ("SPIN", "PAIRS", "CYLINDERS", "MESHES", "PARALLEL")
 # Automatic time step (docs/time-step.md): the smallest of the accuracy step (contact
@@ -553,9 +558,10 @@ class Simulation:
         scene, k = self.scene, self.kernel
         threads_before = numba.get_num_threads()
         threads = min(scene.threads or numba.config.NUMBA_NUM_THREADS, numba.config.NUMBA_NUM_THREADS)
-        numba.set_num_threads(threads)
+        numba.set_num_threads(threads)  # the neighbour-list builds use them at any size
+        loop_threads = threads if self.parallel and scene.n_particles >= PARALLEL_MIN_PARTICLES else 1
         try:
-            return self._run(scene, k, chunk_steps, progress, on_frame, threads, checkpoints, resume_from)
+            return self._run(scene, k, chunk_steps, progress, on_frame, loop_threads, checkpoints, resume_from)
         finally:
             numba.set_num_threads(threads_before)
 
@@ -619,7 +625,7 @@ class Simulation:
         def call(start_step, n_steps, completing, trace):
             return k.advance(state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
                              scene.gravity, state.position_at_build, half_skin_squared, self.dt, start_time, start_step,
-                             n_steps, completing, stop_at_separation, trace, tracking)
+                             n_steps, completing, stop_at_separation, trace, tracking, threads)
 
         # loop: the run loop's own state, saved with the arrays in every checkpoint
         loop = {"steps": 0, "frames": 0, "last_frame_step": -1, "gravity_work_max": 0.0}
@@ -645,7 +651,7 @@ class Simulation:
                 # would compile it a second time
                 k.advance(state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
                           scene.gravity, state.position_at_build, half_skin_squared, 0.0, start_time, 0, 1, True,
-                          False, no_trace, tracking)
+                          False, no_trace, tracking, threads)
             else:
                 call(loop["steps"], 0, False, no_trace)  # changes nothing: the resumed state is untouched
         except numba.core.errors.NumbaError as exc:
