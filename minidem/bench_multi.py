@@ -49,7 +49,8 @@ if frames is not None:
     frames.close()
 print(json.dumps({"wall_s": result.wall_time, "cpu_s": cpu, "steps": result.steps, "threads": result.threads,
                   "mean_z_m": float(result.position[:, 2].mean()), "kinetic_energy_j": float(result.energy[-1, 1]),
-                  "builds": result.neighbour_builds, "setup_rss_kib": setup_rss}))
+                  "builds": result.neighbour_builds, "setup_rss_kib": setup_rss,
+                  "thread_steps": {str(k): v for k, v in result.thread_steps.items()}}))
 """
 
 
@@ -182,18 +183,23 @@ def section(results: dict, command: str, stamp) -> str:
         "LIGGGHTS: its 'Loop time'); particle-steps/s = N x 10,000 / time; medians of "
         f"{len(next(iter(cases.values()))['minidem_1'])} runs; peak memory = the process's ru_maxrss. "
         "LIGGGHTS 3.8.0 (Debian package), `liggghts -in bench/liggghts/in.settle` (hertz, tangential "
-        "history), one core.",
+        "history), one core. minidem with run.threads = 2 runs scenes below 5,000 particles on one thread, "
+        "and larger ones on two except for the chunks where one measured faster (docs/multi-particle.md, "
+        "'Threads'): the column 'steps run on 2 threads' gives, per run, the share of the steps that did.",
         "",
-        "| variant | N | LIGGGHTS 1 core | minidem 1 thread | ratio | minidem 2 threads | 2-thread speed-up | "
-        "peak MiB: LIGGGHTS / minidem 1 / 2 threads | minidem mean z (mm), kinetic energy (J), list builds |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| variant | N | LIGGGHTS 1 core | minidem 1 thread | ratio | minidem run.threads = 2 | speed-up over 1 "
+        "thread | steps run on 2 threads | peak MiB: LIGGGHTS / minidem 1 / 2 threads | minidem mean z (mm), "
+        "kinetic energy (J), list builds |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for (variant, n), case in cases.items():
         lig = _median(case["liggghts"], "rate")
         one, two = _median(case["minidem_1"], "rate"), _median(case.get("minidem_2", []), "rate")
         last = case["minidem_1"][-1]
+        on_two = [r["thread_steps"].get("2", 0) / max(1, r["steps"]) for r in case.get("minidem_2", [])]
+        share = ", ".join(f"{100 * x:.0f} %" for x in on_two) or "-"
         lines.append(
-            f"| {variant} | {n:,} | {lig:.3g} | {one:.3g} | {one / lig:.2f}x | {two:.3g} | {two / one:.2f}x | "
+            f"| {variant} | {n:,} | {lig:.3g} | {one:.3g} | {one / lig:.2f}x | {two:.3g} | {two / one:.2f}x | {share} | "
             f"{_median(case['liggghts'], 'peak_rss_mib'):.0f} / {_median(case['minidem_1'], 'peak_rss_mib'):.0f} / "
             f"{_median(case.get('minidem_2', []), 'peak_rss_mib'):.0f} | {last['mean_z_m'] * 1e3:.3f}, "
             f"{last['kinetic_energy_j']:.2g}, {last['builds']} |")

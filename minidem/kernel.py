@@ -18,7 +18,8 @@ removed by the compiler, so a single impact pays nothing for pairs or meshes):
                update made before the drift, 0.5 velocity Verlet, 1 symplectic Euler
 
 One step is two parallel particle passes (velocity Verlet shown; symplectic Euler
-kicks the whole dt before the drift and nothing after the forces):
+kicks the whole dt before the drift and nothing after the forces), each over one block
+of consecutive particles per thread:
 
     compute_forces      particle i owns its walls and the pairs (i, j > i) of its row of
                         the Verlet half list: it computes them through the one contact
@@ -29,7 +30,11 @@ kicks the whole dt before the drift and nothing after the forces):
                         ascending i (its transposed row), v += F dt/2m; then, unless the
                         step ends a chunk, the next step's v += F dt/2m, x += v dt and
                         the count of particles that moved more than half the skin since
-                        the last neighbour-list build
+                        the last neighbour-list build (``finish_range``)
+
+On one thread the two are one pass: particle p is finished as soon as its own contacts
+are done (every row i < p, which holds its reactions and reads its position, is done by
+then), while its data are still in cache.
 
 Every sum is taken in an order fixed by the neighbour list, never by the thread
 schedule, so a run is bit-for-bit the same on any number of threads, and no two
@@ -149,7 +154,7 @@ def rotate_history(history, nx, ny, nz):
 # triangles and neighbours therefore live in force_range itself.
 @numba.njit(cache=True, inline="always")
 def evaluate_contact(acc, constants_row, history, overlap, previous, normal, curved, vi, wi, vj, wj,
-                     lever_i, lever_j, effective_radius, effective_mass, dt, stats, status, where):
+                     lever_i, lever_j, effective_radius, effective_mass, dt, stats):
     """The one evaluation every contact goes through (sphere-plane, -cylinder,
     -triangle and -sphere): history into the tangent plane (``curved``: the normal
     can turn), contact-point velocity, the law, and the force and torque on i added to
@@ -158,8 +163,12 @@ def evaluate_contact(acc, constants_row, history, overlap, previous, normal, cur
 
     A wall is a partner that does not move (v_j = w_j = 0, lever_j = 0); its lever arm
     lever_i is the undeformed radius, as in the paper's rigid-body analysis (eqs 3-8).
-    A non-finite force is reported as a fault of where = (i, partner, partner kind).
-    Returns (acc, (force on i), (n x ft), fn, ft, displacement increment, finite).
+    Returns (acc, (force on i), (n x ft), fn, ft, displacement increment, finite); the
+    caller reports a non-finite force as a fault. The status array is not an argument:
+    numba increments and decrements the reference count of an array passed to an
+    inlined function that uses it in a branch, on every call: two atomic adds per
+    contact on a header the threads share (removing them took the force pass of the
+    settle scene, N = 20,000, lattice, one thread, from 1.42 to 1.36 ms a step).
     """
     nx, ny, nz = normal
     if ROTATE_HISTORY and curved:
@@ -172,8 +181,6 @@ def evaluate_contact(acc, constants_row, history, overlap, previous, normal, cur
                                   overlap - max(previous, 0.0), normal_velocity, increment, tangential_velocity,
                                   history)
     ok = finite(fn, ftx, fty, ftz)
-    if not ok:
-        fault(status, NON_FINITE_FORCE, where[0], where[1], where[2])
     fx, fy, fz, tx, ty, tz, count = acc
     ex, ey, ez = fn * nx - ftx, fn * ny - fty, fn * nz - ftz
     cx, cy, cz = 0.0, 0.0, 0.0
@@ -228,15 +235,23 @@ def mesh_entry_overlap(px, py, pz, ri, triangles, candidates, start, stop, k, to
 
 
 @numba.njit(cache=True, error_model="numpy", fastmath=FAST, inline=INLINE)
-def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking):
-    """Gravity and the contacts owned by particles first..last-1; returns their count.
+def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking,
+                finish_each, drift_on, position_at_build, half_skin_squared):
+    """Gravity and the contacts owned by particles first..last-1; returns (their count,
+    particles moved more than half the skin, see ``finish_range``).
 
     Particle i owns its walls and the pairs (i, j > i) of its row of the Verlet half
     list; a pair's force on j and its torque direction are stored per list entry for
-    ``finish``. Lever arms of a pair: R_i - d/2 and R_j - d/2 sum to the centre
+    ``finish_range``. Lever arms of a pair: R_i - d/2 and R_j - d/2 sum to the centre
     distance, so the pair's torques balance the moment of its force and angular
     momentum is conserved to round-off.
 
+    ``finish_each`` (serial runs only: first = 0 and no other thread): each particle
+    is finished (``finish_range``) right after its own contacts. That is legal in
+    ascending order: p's reactions come from the rows i < p, all done by then, and
+    only rows i < p read p's position and velocity. The operations are the same, in
+    the same order, as in the separate pass (the same bits), but p's force, velocity
+    and reaction row are still in cache: a whole pass over memory less per step.
     """
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     pair_row, constants = law
@@ -250,7 +265,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
         for i in range(first, last):
             longest_row = max(longest_row, offsets[i + 1] - offsets[i])
     touching_entries = np.empty(longest_row, dtype=np.int64)
-    active = 0
+    active, moved_too_far = 0, 0
     for i in range(first, last):
         px, py, pz, ri, mi, mat = position[i, 0], position[i, 1], position[i, 2], radius[i], mass[i], material[i]
         vi = (velocity[i, 0], velocity[i, 1], velocity[i, 2])
@@ -278,8 +293,9 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
             acc, _, _, fn, ft, increment, ok = evaluate_contact(
                 acc, constants[pair_row[mat, wall_material[w]]], wall_history[i, w], overlap, previous,
                 (wall_normal[w, 0], wall_normal[w, 1], wall_normal[w, 2]), False, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi,
-                dt, stats, status, (i, w, PLANE))
+                dt, stats)
             if not ok:
+                fault(status, NON_FINITE_FORCE, i, w, PLANE)
                 break
             if TRACK and i == 0 and w == probe_wall:
                 probe[PROBE_OVERLAP] = overlap
@@ -308,8 +324,9 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                     continue
                 acc, _, _, _, _, _, ok = evaluate_contact(
                     acc, constants[pair_row[mat, cylinder_material[c]]], cylinder_history[i, c], overlap, previous,
-                    (nx, ny, nz), True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats, status, (i, c, CYLINDER))
+                    (nx, ny, nz), True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)
                 if not ok:
+                    fault(status, NON_FINITE_FORCE, i, c, CYLINDER)
                     break
 
         if MESHES:
@@ -368,8 +385,9 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                         break
                     acc, _, _, _, _, _, ok = evaluate_contact(
                         acc, constants[pair_row[mat, triangle_material[t]]], mesh_history[k], overlap, previous,
-                        (nx, ny, nz), True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats, status, (i, t, TRIANGLE))
+                        (nx, ny, nz), True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)
                     if not ok:
+                        fault(status, NON_FINITE_FORCE, i, t, TRIANGLE)
                         break
             if ending > 0:
                 # the contacts that ended without a successor: their history is dropped
@@ -407,7 +425,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                             note_transitions(stats, time, dt, overlap, previous)
                         if previous > 0.0:
                             # contact ends: its history is dropped and its reaction on j
-                            # is zero from now on (finish adds every entry unconditionally)
+                            # is zero from now on (finish_range adds every entry unconditionally)
                             pair_history[e, :] = 0.0
                             reaction[reaction_slot[e], :] = 0.0
             for k in range(n_touching):
@@ -436,10 +454,11 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                     acc, constants[pair_row[mat, material[j]]], pair_history[e], overlap, previous,
                     (dx * inverse, dy * inverse, dz * inverse), True,
                     vi, wi, (velocity[j, 0], velocity[j, 1], velocity[j, 2]), wj,
-                    ri - 0.5 * overlap, lever_j, ri * rj / reach, mi * mj / (mi + mj), dt, stats, status, (i, j, PARTICLE))
+                    ri - 0.5 * overlap, lever_j, ri * rj / reach, mi * mj / (mi + mj), dt, stats)
                 if not ok:
+                    fault(status, NON_FINITE_FORCE, i, j, PARTICLE)
                     break
-                # j's share, added by finish: the force on i (j gets its opposite) and the
+                # j's share, added by finish_range: the force on i (j gets its opposite) and the
                 # torque on j, R_j' (n x ft), at the slot of the entry in j's reverse row
                 r = reaction_slot[e]
                 reaction[r, 0], reaction[r, 1], reaction[r, 2] = on_i
@@ -452,37 +471,23 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
         force[i, 0], force[i, 1], force[i, 2] = fx, fy, fz
         torque[i, 0], torque[i, 1], torque[i, 2] = tx, ty, tz
         active += count
-    return active
+        if finish_each:
+            moved_too_far += finish_range(i, i + 1, particles, pairs, dt, drift_on, position_at_build,
+                                          half_skin_squared)
+    return active, moved_too_far
 
 
-# particles per parallel work item: large enough to amortise the call (which unpacks the
-# argument tuples), small enough for the threads to share the work evenly
-CHUNK = 256
-
-
-@numba.njit(cache=True, parallel=PARALLEL, inline=INLINE)
-def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking):
-    """Gravity and every contact force on every particle, except the reactions of the
-    pairs (i < p, p), which ``finish`` adds. Returns the number of contacts."""
-    n = particles[0].shape[0]
-    active = 0
-    for chunk in particle_range((n + CHUNK - 1) // CHUNK):
-        active += force_range(chunk * CHUNK, min(n, (chunk + 1) * CHUNK), particles, law, planes, cylinders,
-                              meshes, pairs, gravity, dt, time, tracking)
-    return active
-
-
-@numba.njit(cache=True, parallel=PARALLEL, fastmath=FAST, inline=INLINE)
-def finish_kick_drift(particles, pairs, dt, drift_on, position_at_build, half_skin_squared):
-    """Add the pair reactions to each particle and apply the closing kick; with
-    ``drift_on`` also the next step's opening half kick and drift in the same pass (one
-    parallel region fewer per step; the same operations in the same order, so the same
-    bits as ``finish`` then ``kick_drift``). Returns how many particles have moved
-    more than half the skin since the neighbour list was built (0 without drift)."""
+@numba.njit(cache=True, fastmath=FAST, inline="always")
+def finish_range(first, last, particles, pairs, dt, drift_on, position_at_build, half_skin_squared):
+    """Particles first..last-1: add the pair reactions and apply the closing kick; with
+    ``drift_on`` also the next step's opening half kick and drift (the same operations
+    in the same order, so the same bits as a closing kick then ``kick_drift``). Returns
+    how many of them have moved more than half the skin since the neighbour list was
+    built (0 without drift)."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     offsets, neighbours, history, pair_overlap, reaction, reaction_slot, reverse_offsets = pairs
     moved_too_far = 0
-    for p in particle_range(position.shape[0]):
+    for p in range(first, last):
         if PAIRS:
             # the reactions of the pairs (i < p, p) in ascending i, stored contiguously
             # (the reverse rows): a streamed read, and the same sum whatever the thread
@@ -508,10 +513,75 @@ def finish_kick_drift(particles, pairs, dt, drift_on, position_at_build, half_sk
     return moved_too_far
 
 
+# Relative cost of the force pass per particle (gravity, the plane checks), per listed
+# pair and per touching contact (pair or wall), for the blocks of compute_forces. From
+# the settle scene at N = 20,000, one thread: ~20 ns a particle, ~60 ns a touching contact,
+# a few ns a listed pair apart.
+PARTICLE_COST, LISTED_COST, CONTACT_COST = 4, 1, 12
+
+
 @numba.njit(cache=True)
-def finish(particles, pairs, dt):
-    """Add the pair reactions to each particle, then the closing half kick."""
-    finish_kick_drift(particles, pairs, dt, False, particles[0], 0.0)
+def balanced_blocks(threads, planes, pairs, n):
+    """Bounds of ``threads`` blocks of consecutive particles with equal estimated work
+    in the force pass, counting the contacts touching at the last step.
+
+    Equal particle counts were unequal work: the settle scene's lower layers (the low
+    indices) touch first and most, e.g. 18,401 against 10,723 touching pairs in the two
+    halves of N = 20,000 at step 3,000 (jitter). Which thread computes a particle does
+    not change a bit of the result."""
+    offsets, pair_overlap, wall_overlap = pairs[0], pairs[3], planes[4]
+    work_before = np.empty(n + 1, dtype=np.int64)  # estimated work of particles 0..i-1
+    work_before[0] = 0
+    for i in range(n):
+        work = PARTICLE_COST + LISTED_COST * (offsets[i + 1] - offsets[i])
+        for e in range(offsets[i], offsets[i + 1]):
+            work += CONTACT_COST * (pair_overlap[e] > 0.0)
+        for w in range(wall_overlap.shape[1]):
+            work += CONTACT_COST * (wall_overlap[i, w] > 0.0)
+        work_before[i + 1] = work_before[i] + work
+    bounds = np.empty(threads + 1, dtype=np.int64)
+    for block in range(threads + 1):
+        # the first particle whose preceding work reaches the block's share
+        bounds[block] = np.searchsorted(work_before, block * work_before[n] // threads)
+    bounds[threads] = n
+    return bounds
+
+
+@numba.njit(cache=True, parallel=PARALLEL, inline=INLINE)
+def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking, threads, drift_on,
+                   position_at_build, half_skin_squared, bounds):
+    """Gravity and every contact force on every particle; returns (the number of
+    contacts, particles moved too far). On one thread each particle is finished
+    (``finish_range``) right after its contacts; on more the reactions of the pairs
+    (i < p, p) are left to ``finish_kick_drift`` (moved count -1).
+
+    Parallel: one block of consecutive particles per thread (``bounds``, see
+    ``balanced_blocks``). A call of force_range
+    unpacks the argument tuples, an atomic reference-count update per array on headers
+    the threads share, so it is made once per thread and step (blocks of 256 particles
+    cost 48 of these per block, and the two threads' cache lines bounced between the
+    cores). numba's default schedule gives each thread an equal share of a prange in
+    one piece, so those smaller blocks did not balance the load either."""
+    n = particles[0].shape[0]
+    if threads == 1:
+        return force_range(0, n, particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking,
+                           True, drift_on, position_at_build, half_skin_squared)
+    active = 0
+    for block in particle_range(threads):
+        active += force_range(bounds[block], bounds[block + 1], particles, law, planes, cylinders, meshes, pairs,
+                              gravity, dt, time, tracking, False, False, position_at_build, half_skin_squared)[0]
+    return active, -1
+
+
+@numba.njit(cache=True, parallel=PARALLEL, inline=INLINE)
+def finish_kick_drift(particles, pairs, dt, drift_on, position_at_build, half_skin_squared, threads):
+    """``finish_range`` of every particle, one block per thread (as compute_forces)."""
+    n = particles[0].shape[0]
+    moved_too_far = 0
+    for block in particle_range(threads):
+        moved_too_far += finish_range(block * n // threads, (block + 1) * n // threads, particles, pairs, dt,
+                                      drift_on, position_at_build, half_skin_squared)
+    return moved_too_far
 
 
 @numba.njit(cache=True, inline="always")
@@ -544,7 +614,7 @@ def kick_drift(particles, dt, position_at_build, half_skin_squared):
 
 @numba.njit(cache=True, error_model="numpy")
 def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_at_build, half_skin_squared,
-            dt, start_time, start_step, n_steps, resume, stop_at_separation, trace, tracking):
+            dt, start_time, start_step, n_steps, resume, stop_at_separation, trace, tracking, threads):
     """Advance up to n_steps; return (steps completed, neighbour list needs a rebuild).
 
     Returns early
@@ -555,26 +625,37 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
       contact has occurred; tracked scenes only);
     * on a fault (status[0] != OK).
     ``trace`` (rows = steps, may have 0 rows) receives the probed contact each step.
+    ``threads``: how many threads run the particle loops, at most numba's current
+    number (numba.set_num_threads; not read here: numba.get_num_threads() in compiled
+    code makes it uncacheable).
     Times are start_time + k dt, not a running sum, so long runs do not drift.
 
     Two parallel passes a step: forces, then reactions + closing half kick fused with
     the next step's opening half kick and drift. The call's last step (and every traced
     or stop-at-separation step) ends on the closing half kick, so the velocities the
-    caller sees are those at the end of a step.
+    caller sees are those at the end of a step. On one thread: one pass, each particle
+    finished right after its own contacts (``force_range``). Either way the same
+    operations in the same order.
     """
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     probe_wall, probe, stats, status = tracking
+    if not PARALLEL:
+        threads = 1
+    bounds = balanced_blocks(threads, planes, pairs, position.shape[0]) if threads > 1 else np.zeros(2, np.int64)
     drifted = resume  # the opening half kick and drift of the current step are done
     for step in range(n_steps):
         if not drifted:
             if kick_drift(particles, dt, position_at_build, half_skin_squared) > 0:
                 return step, True
         time = start_time + (start_step + step + 1) * dt
-        active = compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking)
+        drifted = step + 1 < n_steps and step + 1 >= trace.shape[0] and not stop_at_separation
+        active, moved_too_far = compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time,
+                                               tracking, threads, drifted, position_at_build, half_skin_squared, bounds)
         if status[0] != OK:
             return step + 1, False
-        drifted = step + 1 < n_steps and step + 1 >= trace.shape[0] and not stop_at_separation
-        moved_too_far = finish_kick_drift(particles, pairs, dt, drifted, position_at_build, half_skin_squared)
+        if threads > 1:
+            moved_too_far = finish_kick_drift(particles, pairs, dt, drifted, position_at_build, half_skin_squared,
+                                              threads)
         if not TRACK and active > 0 and stats[FIRST_CONTACT_TIME] < 0.0:
             stats[FIRST_CONTACT_TIME] = time  # to the step: only the serial loop interpolates
         if step < trace.shape[0]:

@@ -153,8 +153,10 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
         Key("gravity", "vec3", (0.0, 0.0, 0.0), "m/s^2", "gravitational acceleration"),
         Key("skin", "float", None, "m", "Verlet neighbour-list skin; the list is rebuilt when a particle "
             "has moved skin/2; default: half the largest radius", low=0.0),
-        Key("threads", "int", 0, "-", "threads for the particle loops (0: all numba may use, "
-            "NUMBA_NUM_THREADS); results are bit-for-bit the same for any count", low=0),
+        Key("threads", "int", 0, "-", "most threads for the particle loops (0: all numba may use, "
+            "NUMBA_NUM_THREADS). Scenes of fewer than 5,000 particles use one; larger ones time their "
+            "chunks and run on one when that is faster (a loaded machine; docs/multi-particle.md, "
+            "'Threads'). Results are bit-for-bit the same for any count", low=0),
     ), "Run control."),
     "output": ("table", (
         Key("directory", "str", None, "", "output directory (relative to the working directory); "

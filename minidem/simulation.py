@@ -38,6 +38,12 @@ _ENGINE_SOURCES = ("kernel.py", "contact.py", "integrate.py")
 # duration need the separation instant, interpolated within the step, which only the
 # serial loop can record without a race between threads.
 PARALLEL_ABOVE = 16
+# A PARALLEL kernel runs its particle loops on one thread, whatever run.threads says, for
+# scenes with fewer particles than this: each step forks and joins the threads twice,
+# which costs more than the second thread saves below this size (measured on the settle
+# scene: docs/multi-particle.md, "Threads"). The results are the same bits either way.
+# (The run.threads text in minidem/scenario.py names this number.)
+PARALLEL_MIN_PARTICLES = 5000
 # scene-shape flags of the kernel specialisation block, in order
 KERNEL_FLAGS = ("SPIN", "PAIRS", "CYLINDERS", "MESHES", "PARALLEL")
 # Automatic time step (docs/time-step.md): the smallest of the accuracy step (contact
@@ -51,6 +57,54 @@ STABILITY_SAFETY = 0.2
 # state costs about as much as one step of it (measured on settle.toml, N = 2000: 0.13 ms
 # a copy, 0.5 ms a step), so a copy every 100 steps of 2000 particles costs ~1 %
 SNAPSHOT_PARTICLE_STEPS = 200_000
+
+
+class LoopThreads:
+    """How many threads run the particle loops, chosen chunk by chunk between one and
+    ``most`` (run.threads). Only the speed depends on it: the results are the same bits
+    on any count.
+
+    Two threads fork and join twice a step. On a machine shared with other jobs a thread
+    descheduled at a join stalls the other, and a run on two threads was up to several
+    times slower than on one (docs/multi-particle.md, "Threads"). So the run times its
+    chunks (seconds per step) and now and then runs one chunk on the other count, keeping
+    the faster. A probe that loses doubles the wait before the next one, up to
+    ``PROBE_MAX`` chunks (a chunk is ~0.1-0.2 s), so losing probes cost a few per cent.
+    """
+
+    PROBE_FIRST, PROBE_MAX = 4, 64
+    # chunks shorter than this (cut short by a list rebuild) are too noisy to compare
+    MIN_STEPS = 10
+
+    def __init__(self, most: int):
+        self.most = most
+        self.current = most
+        self.wait = self.PROBE_FIRST
+        self.since_probe = 0
+        self.seconds_per_step: dict[int, float] = {}
+        self.steps: dict[int, int] = {}  # steps run on each count
+
+    def choose(self) -> int:
+        if self.most > 1 and self.since_probe >= self.wait:
+            return 1 if self.current == self.most else self.most
+        return self.current
+
+    def record(self, threads: int, steps: int, seconds: float) -> None:
+        self.steps[threads] = self.steps.get(threads, 0) + steps
+        if self.most == 1 or steps < self.MIN_STEPS:
+            return
+        self.seconds_per_step[threads] = seconds / steps
+        if threads == self.current:
+            self.since_probe += 1
+            return
+        self.since_probe = 0  # a probe of the other count: keep the faster
+        if seconds / steps < self.seconds_per_step.get(self.current, math.inf):
+            self.current, self.wait = threads, self.PROBE_FIRST
+        else:
+            self.wait = min(2 * self.wait, self.PROBE_MAX)
+
+    def most_used(self) -> int:
+        return max(self.steps, key=self.steps.get) if self.steps else self.current
 
 
 class RunFailure(Exception):
@@ -229,7 +283,8 @@ class RunResult:
     torque: np.ndarray | None = None
     contacts: int = 0  # touching pairs and wall contacts at the end
     neighbour_builds: int = 0
-    threads: int = 1
+    threads: int = 1  # threads that ran the particle loops for most of the steps (see LoopThreads)
+    thread_steps: dict | None = None  # {threads: steps run on that many}
     energy: np.ndarray | None = None  # rows (time s, translational + rotational kinetic energy J)
     # False when the parallel loop ran: it records first touch (to the step) but not the
     # peaks and the separation, which would need a race between threads
@@ -642,9 +697,11 @@ class Simulation:
         scene, k = self.scene, self.kernel
         threads_before = numba.get_num_threads()
         threads = min(scene.threads or numba.config.NUMBA_NUM_THREADS, numba.config.NUMBA_NUM_THREADS)
-        numba.set_num_threads(threads)
+        loop_threads = threads if self.parallel and scene.n_particles >= PARALLEL_MIN_PARTICLES else 1
+        # every parallel loop, the neighbour-list builds too, runs on the particle loops' count
+        numba.set_num_threads(loop_threads)
         try:
-            return self._run(scene, k, chunk_steps, progress, on_frame, threads, checkpoints, resume_from)
+            return self._run(scene, k, chunk_steps, progress, on_frame, loop_threads, checkpoints, resume_from)
         finally:
             numba.set_num_threads(threads_before)
 
@@ -705,10 +762,15 @@ class Simulation:
         def frame_step(index):
             return int(round(index * frame_interval / self.dt))
 
-        def call(start_step, n_steps, completing, trace):
+        loop_threads = LoopThreads(threads)
+
+        def call(start_step, n_steps, completing, trace, threads=None):
+            threads = threads or loop_threads.current
+            # every parallel loop of the chunk (the opening kick_drift too) on that many
+            numba.set_num_threads(threads)
             return k.advance(state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
                              scene.gravity, state.position_at_build, half_skin_squared, self.dt, start_time, start_step,
-                             n_steps, completing, stop_at_separation, trace, tracking)
+                             n_steps, completing, stop_at_separation, trace, tracking, threads)
 
         # loop: the run loop's own state, saved with the arrays in every checkpoint
         loop = {"steps": 0, "frames": 0, "last_frame_step": -1, "gravity_work_max": 0.0}
@@ -734,7 +796,7 @@ class Simulation:
                 # would compile it a second time
                 k.advance(state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
                           scene.gravity, state.position_at_build, half_skin_squared, 0.0, start_time, 0, 1, True,
-                          False, no_trace, tracking)
+                          False, no_trace, tracking, threads)
             else:
                 call(loop["steps"], 0, False, no_trace)  # changes nothing: the resumed state is untouched
         except numba.core.errors.NumbaError as exc:
@@ -829,7 +891,9 @@ class Simulation:
                 chunk = goal - steps
                 trace = np.zeros((chunk, len(kernel.TRACE_COLUMNS))) if scene.trace else no_trace
                 chunk_started = wallclock.perf_counter()
-                taken, needs_rebuild = call(steps, chunk, completing, trace)
+                chunk_threads = loop_threads.choose()
+                taken, needs_rebuild = call(steps, chunk, completing, trace, chunk_threads)
+                loop_threads.record(chunk_threads, taken, wallclock.perf_counter() - chunk_started)
                 if scene.trace:
                     trace_chunks.append(trace[:taken])
                 steps = loop["steps"] = steps + taken
@@ -901,7 +965,8 @@ class Simulation:
             time=start_time + steps * self.dt, separated=separated, first_contact_time=stats[0], last_separation_time=stats[1],
             max_overlap=stats[2], peak_normal_force=stats[3], peak_tangential_force=stats[4], wall_time=wall_time,
             trace=np.concatenate(trace_chunks) if trace_chunks else None, force=state.force, torque=state.torque,
-            contacts=state.count_contacts(), neighbour_builds=state.builds, threads=threads,
+            contacts=state.count_contacts(), neighbour_builds=state.builds, threads=loop_threads.most_used(),
+            thread_steps=dict(loop_threads.steps),
             energy=np.array(energy), contact_statistics=not self.parallel,
         )
 

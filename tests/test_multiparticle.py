@@ -292,19 +292,57 @@ def test_history_survives_neighbour_list_rebuilds_bit_for_bit():
     assert np.array_equal(many.angular_velocity, once.angular_velocity)
 
 
-def test_same_bits_on_one_and_two_threads():
+def test_same_bits_on_one_and_two_threads(monkeypatch):
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("needs two threads")
     # 0.012 s: the pile's first impacts (pair and wall contacts, rebuilds), kept short
-    # because two threads meet at a barrier three times a step
+    # because two threads meet at a barrier twice a step
     base = DEEP_PILE[1:] + ["fill.0.count=200", "run.end_time=0.012", "output.vtk=false"]
-    runs = [simulation.Simulation(scenario.load_scene("scenarios/settle.toml", base + [f"run.threads={t}"])).run()
-            for t in (1, 2)]
+
+    def run(threads):
+        return simulation.Simulation(scenario.load_scene("scenarios/settle.toml",
+                                                         base + [f"run.threads={threads}"])).run()
+
+    # a scene this small runs its loops on one thread (one fused pass) whatever run.threads says
+    small = run(2)
+    assert small.threads == 1
+    # lowered, so that 200 particles run the two-thread loops (blocks, separate finish
+    # pass), and no chunk tries one thread instead (LoopThreads)
+    monkeypatch.setattr(simulation, "PARALLEL_MIN_PARTICLES", 0)
+    monkeypatch.setattr(simulation.LoopThreads, "PROBE_FIRST", 10**9)
+    runs = [run(t) for t in (1, 2)]
     assert runs[0].threads == 1 and runs[1].threads == 2
     assert runs[1].contacts > 50
-    assert np.array_equal(runs[0].position, runs[1].position)
-    assert np.array_equal(runs[0].velocity, runs[1].velocity)
-    assert np.array_equal(runs[0].angular_velocity, runs[1].angular_velocity)
+    for other in (runs[1], small):
+        assert np.array_equal(runs[0].position, other.position)
+        assert np.array_equal(runs[0].velocity, other.velocity)
+        assert np.array_equal(runs[0].angular_velocity, other.angular_velocity)
+
+
+def test_loop_threads_keep_the_faster_count():
+    # two threads allowed; one thread is measured faster (a loaded machine): the run
+    # switches to it at the first probe, and probes two threads again later, ever more
+    # rarely while they keep losing; when two win again it goes back to two
+    chooser = simulation.LoopThreads(2)
+    speed = {1: 1.0, 2: 3.0}  # seconds per 100 steps
+    used = []
+    for _ in range(200):
+        threads = chooser.choose()
+        used.append(threads)
+        chooser.record(threads, 100, speed[threads])
+    assert used[:simulation.LoopThreads.PROBE_FIRST + 1] == [2] * simulation.LoopThreads.PROBE_FIRST + [1]
+    probes = [k for k in range(10, 200) if used[k] == 2]
+    assert 2 <= len(probes) <= 6 and probes[-1] - probes[-2] >= 32  # backing off
+    assert chooser.most_used() == 1 and chooser.steps == {1: 100 * used.count(1), 2: 100 * used.count(2)}
+    speed = {1: 1.0, 2: 0.6}
+    for _ in range(2 * simulation.LoopThreads.PROBE_MAX + 2):
+        threads = chooser.choose()
+        chooser.record(threads, 100, speed[threads])
+    assert chooser.current == 2
+    # chunks cut short by a rebuild count their steps but decide nothing
+    chooser.record(1, simulation.LoopThreads.MIN_STEPS - 1, 1e-9)
+    assert chooser.current == 2
+    assert simulation.LoopThreads(1).choose() == 1
 
 
 def test_vtk_series_reads_back_with_meshio_and_vtk(tmp_path):
