@@ -23,6 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from minidem import simulation
+
 ROOT = Path(__file__).resolve().parent.parent
 SETTLE = ROOT / "scenarios" / "settle.toml"
 SHARED_BENCH = ROOT.parent / "shared" / "bench" / "liggghts"
@@ -33,6 +35,9 @@ _CHILD = """
 import json, resource, sys, time
 from minidem import scenario, simulation
 n, jitter, threads, steps, vtk, out = sys.argv[1:7]
+if threads.endswith("pinned"):  # every chunk on that many threads: no probes of one (LoopThreads)
+    threads = threads.removesuffix("pinned")
+    simulation.LoopThreads.PROBE_FIRST = 10**9
 overrides = [f"fill.0.count={n}", f"fill.0.jitter={jitter}", f"run.threads={threads}",
              f"run.end_time={int(steps) * 2e-5!r}", f"output.vtk={vtk}"]
 scene = scenario.load_scene(sys.argv[7], overrides, out)
@@ -72,8 +77,9 @@ def _run_measured(argv, cwd=None) -> tuple[str, str, float]:
     return done.stdout, done.stderr, int(peak.split("=")[1]) / 1024.0
 
 
-def run_minidem(n: int, jitter: float, threads: int, steps: int = STEPS, vtk: bool = False,
+def run_minidem(n: int, jitter: float, threads: int | str, steps: int = STEPS, vtk: bool = False,
                 out: Path | None = None) -> dict:
+    """``threads``: run.threads, or e.g. "2pinned": two threads for every chunk."""
     out = out or Path(tempfile.gettempdir()) / "minidem-bench-settle"
     stdout, _, rss = _run_measured([sys.executable, "-c", _CHILD, n, repr(jitter), threads, steps,
                                     "true" if vtk else "false", out, SETTLE])
@@ -136,13 +142,19 @@ def measure(repeats: int = 3, sizes=(2_000, 20_000), variants=("lattice", "jitte
             for variant in variants:
                 jitter = JITTER[variant]
                 data = lattice_data(n, jitter, folder) if have_liggghts else None
-                case = {"liggghts": [], **{f"minidem_{t}": [] for t in thread_counts}}
+                # pinned: the two-thread loops for every chunk (no one-thread probes), for
+                # their speed-up alone; scenes below PARALLEL_MIN_PARTICLES never use them
+                pinned = n >= simulation.PARALLEL_MIN_PARTICLES
+                case = {"liggghts": [], **{f"minidem_{t}": [] for t in thread_counts},
+                        **({"minidem_2_pinned": []} if pinned else {})}
                 for repeat in range(repeats):
                     # interleaved, so a change in the machine's load hits every code alike
                     if have_liggghts:
                         case["liggghts"].append(run_liggghts(data))
                     for t in thread_counts:
                         case[f"minidem_{t}"].append(run_minidem(n, jitter, t))
+                    if pinned:
+                        case["minidem_2_pinned"].append(run_minidem(n, jitter, "2pinned"))
                     echo(f"bench: {variant} N={n} repeat {repeat + 1}/{repeats}: "
                          + ", ".join(f"{k} {v[-1]['rate']:.3g}/s" for k, v in case.items() if v))
                 results["cases"][(variant, n)] = case
@@ -166,6 +178,13 @@ def _median(runs, key):
     return statistics.median(r[key] for r in runs) if runs else float("nan")
 
 
+def pinned_text(case, one_thread_rate) -> str:
+    if not case.get("minidem_2_pinned"):
+        return "- (below 5,000: one thread)"
+    rate = _median(case["minidem_2_pinned"], "rate")
+    return f"{rate:.3g}, {rate / one_thread_rate:.2f}x"
+
+
 def section(results: dict, command: str, stamp) -> str:
     cases = results["cases"]
     load_start, load_end = results["load"]
@@ -185,12 +204,14 @@ def section(results: dict, command: str, stamp) -> str:
         "LIGGGHTS 3.8.0 (Debian package), `liggghts -in bench/liggghts/in.settle` (hertz, tangential "
         "history), one core. minidem with run.threads = 2 runs scenes below 5,000 particles on one thread, "
         "and larger ones on two except for the chunks where one measured faster (docs/multi-particle.md, "
-        "'Threads'): the column 'steps run on 2 threads' gives, per run, the share of the steps that did.",
+        "'Threads'): the column 'steps run on 2 threads' gives, per run, the share of the steps that did. "
+        "'2 threads pinned' runs every chunk on two threads (no one-thread probes): the two-thread loops' own "
+        "speed-up, whatever the load.",
         "",
         "| variant | N | LIGGGHTS 1 core | minidem 1 thread | ratio | minidem run.threads = 2 | speed-up over 1 "
-        "thread | steps run on 2 threads | peak MiB: LIGGGHTS / minidem 1 / 2 threads | minidem mean z (mm), "
-        "kinetic energy (J), list builds |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "thread | steps run on 2 threads | 2 threads pinned: rate, speed-up | peak MiB: LIGGGHTS / minidem 1 / 2 "
+        "threads | minidem mean z (mm), kinetic energy (J), list builds |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for (variant, n), case in cases.items():
         lig = _median(case["liggghts"], "rate")
@@ -200,6 +221,7 @@ def section(results: dict, command: str, stamp) -> str:
         share = ", ".join(f"{100 * x:.0f} %" for x in on_two) or "-"
         lines.append(
             f"| {variant} | {n:,} | {lig:.3g} | {one:.3g} | {one / lig:.2f}x | {two:.3g} | {two / one:.2f}x | {share} | "
+            f"{pinned_text(case, one)} | "
             f"{_median(case['liggghts'], 'peak_rss_mib'):.0f} / {_median(case['minidem_1'], 'peak_rss_mib'):.0f} / "
             f"{_median(case.get('minidem_2', []), 'peak_rss_mib'):.0f} | {last['mean_z_m'] * 1e3:.3f}, "
             f"{last['kinetic_energy_j']:.2g}, {last['builds']} |")

@@ -32,9 +32,12 @@ of consecutive particles per thread:
                         the count of particles that moved more than half the skin since
                         the last neighbour-list build (``finish_range``)
 
-On one thread the two are one pass: particle p is finished as soon as its own contacts
-are done (every row i < p, which holds its reactions and reads its position, is done by
-then), while its data are still in cache.
+Most particles are finished inside compute_forces, as soon as their own contacts are
+done, while their data are still in cache: legal for p when every row i < p that lists
+it (holds its reactions, reads its position) is in p's own block, done by then
+(``first_partner``). On one thread that is every particle and the step is one pass; on
+two, finish_kick_drift is left with the particles that have a partner in the block
+before theirs (about one layer of a pile).
 
 Every sum is taken in an order fixed by the neighbour list, never by the thread
 schedule, so a run is bit-for-bit the same on any number of threads, and no two
@@ -236,7 +239,7 @@ def mesh_entry_overlap(px, py, pz, ri, triangles, candidates, start, stop, k, to
 
 @numba.njit(cache=True, error_model="numpy", fastmath=FAST, inline=INLINE)
 def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking,
-                finish_each, drift_on, position_at_build, half_skin_squared):
+                first_partner, drift_on, position_at_build, half_skin_squared):
     """Gravity and the contacts owned by particles first..last-1; returns (their count,
     particles moved more than half the skin, see ``finish_range``).
 
@@ -246,12 +249,14 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
     distance, so the pair's torques balance the moment of its force and angular
     momentum is conserved to round-off.
 
-    ``finish_each`` (serial runs only: first = 0 and no other thread): each particle
-    is finished (``finish_range``) right after its own contacts. That is legal in
-    ascending order: p's reactions come from the rows i < p, all done by then, and
+    Each particle p none of whose partners comes before ``first`` (first_partner[p] >=
+    first, see ``thread_blocks``; on one thread every particle) is finished
+    (``finish_range``) right after its own contacts. That is legal in ascending order:
+    p's reactions come from the rows i < p, all in this block and done by then, and
     only rows i < p read p's position and velocity. The operations are the same, in
     the same order, as in the separate pass (the same bits), but p's force, velocity
-    and reaction row are still in cache: a whole pass over memory less per step.
+    and reaction row are still in cache: the separate pass is left with the particles
+    that have a partner in an earlier block (on two threads, about a layer of the pile).
     """
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     pair_row, constants = law
@@ -471,23 +476,27 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
         force[i, 0], force[i, 1], force[i, 2] = fx, fy, fz
         torque[i, 0], torque[i, 1], torque[i, 2] = tx, ty, tz
         active += count
-        if finish_each:
-            moved_too_far += finish_range(i, i + 1, particles, pairs, dt, drift_on, position_at_build,
-                                          half_skin_squared)
+        if first_partner[i] >= first:
+            moved_too_far += finish_range(i, i + 1, last, first_partner, particles, pairs, dt, drift_on,
+                                          position_at_build, half_skin_squared)
     return active, moved_too_far
 
 
 @numba.njit(cache=True, fastmath=FAST, inline="always")
-def finish_range(first, last, particles, pairs, dt, drift_on, position_at_build, half_skin_squared):
-    """Particles first..last-1: add the pair reactions and apply the closing kick; with
-    ``drift_on`` also the next step's opening half kick and drift (the same operations
-    in the same order, so the same bits as a closing kick then ``kick_drift``). Returns
-    how many of them have moved more than half the skin since the neighbour list was
-    built (0 without drift)."""
+def finish_range(first, last, finished_from, first_partner, particles, pairs, dt, drift_on, position_at_build,
+                 half_skin_squared):
+    """Particles first..last-1, except those whose first partner is at ``finished_from``
+    or later (finished in the force pass): add the pair reactions and apply the closing
+    kick; with ``drift_on`` also the next step's opening half kick and drift (the same
+    operations in the same order, so the same bits as a closing kick then
+    ``kick_drift``). Returns how many of them have moved more than half the skin since
+    the neighbour list was built (0 without drift)."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     offsets, neighbours, history, pair_overlap, reaction, reaction_slot, reverse_offsets = pairs
     moved_too_far = 0
     for p in range(first, last):
+        if first_partner[p] >= finished_from:
+            continue
         if PAIRS:
             # the reactions of the pairs (i < p, p) in ascending i, stored contiguously
             # (the reverse rows): a streamed read, and the same sum whatever the thread
@@ -521,15 +530,22 @@ PARTICLE_COST, LISTED_COST, CONTACT_COST = 4, 1, 12
 
 
 @numba.njit(cache=True)
-def balanced_blocks(threads, planes, pairs, n):
-    """Bounds of ``threads`` blocks of consecutive particles with equal estimated work
-    in the force pass, counting the contacts touching at the last step.
+def thread_blocks(threads, planes, pairs, n):
+    """(bounds of ``threads`` blocks of consecutive particles with equal estimated work
+    in the force pass, counting the contacts touching at the last step; the first
+    partner of each particle: the smallest i whose row lists it, itself if none).
 
     Equal particle counts were unequal work: the settle scene's lower layers (the low
     indices) touch first and most, e.g. 18,401 against 10,723 touching pairs in the two
     halves of N = 20,000 at step 3,000 (jitter). Which thread computes a particle does
     not change a bit of the result."""
-    offsets, pair_overlap, wall_overlap = pairs[0], pairs[3], planes[4]
+    offsets, neighbours, pair_overlap, wall_overlap = pairs[0], pairs[1], pairs[3], planes[4]
+    first_partner = np.arange(n)
+    for i in range(n):
+        for e in range(offsets[i], offsets[i + 1]):
+            first_partner[neighbours[e]] = min(first_partner[neighbours[e]], i)
+    if threads == 1:
+        return np.array([0, n]), first_partner
     work_before = np.empty(n + 1, dtype=np.int64)  # estimated work of particles 0..i-1
     work_before[0] = 0
     for i in range(n):
@@ -544,43 +560,46 @@ def balanced_blocks(threads, planes, pairs, n):
         # the first particle whose preceding work reaches the block's share
         bounds[block] = np.searchsorted(work_before, block * work_before[n] // threads)
     bounds[threads] = n
-    return bounds
+    return bounds, first_partner
 
 
 @numba.njit(cache=True, parallel=PARALLEL, inline=INLINE)
 def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking, threads, drift_on,
-                   position_at_build, half_skin_squared, bounds):
+                   position_at_build, half_skin_squared, bounds, first_partner):
     """Gravity and every contact force on every particle; returns (the number of
-    contacts, particles moved too far). On one thread each particle is finished
-    (``finish_range``) right after its contacts; on more the reactions of the pairs
-    (i < p, p) are left to ``finish_kick_drift`` (moved count -1).
+    contacts, particles finished and moved too far). Finishes every particle that has
+    no partner in an earlier block (``force_range``), on one thread all of them; the
+    others are left to ``finish_kick_drift``.
 
     Parallel: one block of consecutive particles per thread (``bounds``, see
-    ``balanced_blocks``). A call of force_range
+    ``thread_blocks``). A call of force_range
     unpacks the argument tuples, an atomic reference-count update per array on headers
     the threads share, so it is made once per thread and step (blocks of 256 particles
     cost 48 of these per block, and the two threads' cache lines bounced between the
     cores). numba's default schedule gives each thread an equal share of a prange in
     one piece, so those smaller blocks did not balance the load either."""
-    n = particles[0].shape[0]
     if threads == 1:
-        return force_range(0, n, particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking,
-                           True, drift_on, position_at_build, half_skin_squared)
-    active = 0
+        return force_range(0, bounds[1], particles, law, planes, cylinders, meshes, pairs, gravity, dt, time,
+                           tracking, first_partner, drift_on, position_at_build, half_skin_squared)
+    active, moved_too_far = 0, 0
     for block in particle_range(threads):
-        active += force_range(bounds[block], bounds[block + 1], particles, law, planes, cylinders, meshes, pairs,
-                              gravity, dt, time, tracking, False, False, position_at_build, half_skin_squared)[0]
-    return active, -1
+        block_active, block_moved = force_range(bounds[block], bounds[block + 1], particles, law, planes, cylinders,
+                                                meshes, pairs, gravity, dt, time, tracking, first_partner, drift_on,
+                                                position_at_build, half_skin_squared)
+        active += block_active
+        moved_too_far += block_moved
+    return active, moved_too_far
 
 
 @numba.njit(cache=True, parallel=PARALLEL, inline=INLINE)
-def finish_kick_drift(particles, pairs, dt, drift_on, position_at_build, half_skin_squared, threads):
-    """``finish_range`` of every particle, one block per thread (as compute_forces)."""
-    n = particles[0].shape[0]
+def finish_kick_drift(particles, pairs, dt, drift_on, position_at_build, half_skin_squared, threads, bounds,
+                      first_partner):
+    """``finish_range`` of the particles compute_forces left (a partner in an earlier
+    block), in the same blocks."""
     moved_too_far = 0
     for block in particle_range(threads):
-        moved_too_far += finish_range(block * n // threads, (block + 1) * n // threads, particles, pairs, dt,
-                                      drift_on, position_at_build, half_skin_squared)
+        moved_too_far += finish_range(bounds[block], bounds[block + 1], bounds[block], first_partner, particles,
+                                      pairs, dt, drift_on, position_at_build, half_skin_squared)
     return moved_too_far
 
 
@@ -631,17 +650,17 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
     Times are start_time + k dt, not a running sum, so long runs do not drift.
 
     Two parallel passes a step: forces, then reactions + closing half kick fused with
-    the next step's opening half kick and drift. The call's last step (and every traced
-    or stop-at-separation step) ends on the closing half kick, so the velocities the
-    caller sees are those at the end of a step. On one thread: one pass, each particle
-    finished right after its own contacts (``force_range``). Either way the same
-    operations in the same order.
+    the next step's opening half kick and drift, for the particles the force pass could
+    not finish itself (none on one thread: one pass a step; see the module docstring).
+    The call's last step (and every traced or stop-at-separation step) ends on the
+    closing half kick, so the velocities the caller sees are those at the end of a
+    step. Either way the same operations in the same order.
     """
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     probe_wall, probe, stats, status = tracking
     if not PARALLEL:
         threads = 1
-    bounds = balanced_blocks(threads, planes, pairs, position.shape[0]) if threads > 1 else np.zeros(2, np.int64)
+    bounds, first_partner = thread_blocks(threads, planes, pairs, position.shape[0])
     drifted = resume  # the opening half kick and drift of the current step are done
     for step in range(n_steps):
         if not drifted:
@@ -650,12 +669,13 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
         time = start_time + (start_step + step + 1) * dt
         drifted = step + 1 < n_steps and step + 1 >= trace.shape[0] and not stop_at_separation
         active, moved_too_far = compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time,
-                                               tracking, threads, drifted, position_at_build, half_skin_squared, bounds)
+                                               tracking, threads, drifted, position_at_build, half_skin_squared, bounds,
+                                               first_partner)
         if status[0] != OK:
             return step + 1, False
         if threads > 1:
-            moved_too_far = finish_kick_drift(particles, pairs, dt, drifted, position_at_build, half_skin_squared,
-                                              threads)
+            moved_too_far += finish_kick_drift(particles, pairs, dt, drifted, position_at_build, half_skin_squared,
+                                               threads, bounds, first_partner)
         if not TRACK and active > 0 and stats[FIRST_CONTACT_TIME] < 0.0:
             stats[FIRST_CONTACT_TIME] = time  # to the step: only the serial loop interpolates
         if step < trace.shape[0]:

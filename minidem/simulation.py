@@ -53,10 +53,12 @@ RAYLEIGH_FRACTION = 0.2
 STABILITY_SAFETY = 0.2
 
 
-# particle-steps between two copies of the last good state: copying one particle's
-# state costs about as much as one step of it (measured on settle.toml, N = 2000: 0.13 ms
-# a copy, 0.5 ms a step), so a copy every 100 steps of 2000 particles costs ~1 %
+# particle-steps between two copies of the last good state (small scenes: a copy has a
+# fixed cost besides the arrays), and at least SNAPSHOT_STEPS steps: a copy costs a step
+# or less at any N (settle.toml, N = 2000: 0.13 ms a copy, 0.5 ms a step; N = 20,000:
+# 2.2 ms, 1.5-3 ms), so about 1 % of the run
 SNAPSHOT_PARTICLE_STEPS = 200_000
+SNAPSHOT_STEPS = 100
 
 
 class LoopThreads:
@@ -757,7 +759,9 @@ class Simulation:
         # The last good state (restored and written on a blow-up, and the checkpoint of a
         # Ctrl-C) is copied after a check has passed, at most every snapshot_steps, so
         # that copying it costs under ~1 % of the steps in between whatever the scene size.
-        snapshot_steps = max(1, SNAPSHOT_PARTICLE_STEPS // max(1, scene.n_particles))
+        # (with particle-steps alone, N = 20,000 copied every 10 steps, i.e. every chunk:
+        # 0.45 s of a 7.4 s run, jitter, 4,000 steps, two threads)
+        snapshot_steps = max(SNAPSHOT_STEPS, SNAPSHOT_PARTICLE_STEPS // max(1, scene.n_particles))
 
         def frame_step(index):
             return int(round(index * frame_interval / self.dt))
