@@ -97,9 +97,7 @@ def engine_case(law: str, angle_deg: float, steps_per_contact: int = DEFAULT_STE
     from minidem import analysis, scenario, simulation
 
     overrides = [f"impact.angle_deg={angle_deg!r}", f'contact.law="{law}"',
-                 f"run.steps_per_contact={steps_per_contact}"]
-    if integrator != "velocity_verlet":
-        overrides.append(f'run.integrator="{integrator}"')
+                 f"run.steps_per_contact={steps_per_contact}", f'run.integrator="{integrator}"']
     if gap:
         overrides.append(f"impact.gap={gap!r}")
     scene = scenario.load_scene(SCENARIO, overrides + list(settings))

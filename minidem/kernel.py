@@ -539,13 +539,21 @@ def thread_blocks(threads, planes, pairs, n):
     indices) touch first and most, e.g. 18,401 against 10,723 touching pairs in the two
     halves of N = 20,000 at step 3,000 (jitter). Which thread computes a particle does
     not change a bit of the result."""
-    offsets, neighbours, pair_overlap, wall_overlap = pairs[0], pairs[1], pairs[3], planes[4]
+    offsets, neighbours = pairs[0], pairs[1]
     first_partner = np.arange(n)
     for i in range(n):
         for e in range(offsets[i], offsets[i + 1]):
             first_partner[neighbours[e]] = min(first_partner[neighbours[e]], i)
-    if threads == 1:
-        return np.array([0, n]), first_partner
+    if PARALLEL:  # compile-time: serial kernels do not compile the balancing
+        if threads > 1:
+            return balanced_bounds(threads, planes, pairs, n), first_partner
+    return np.array([0, n]), first_partner
+
+
+@numba.njit(cache=True)
+def balanced_bounds(threads, planes, pairs, n):
+    """Block bounds of thread_blocks for more than one thread."""
+    offsets, pair_overlap, wall_overlap = pairs[0], pairs[3], planes[4]
     work_before = np.empty(n + 1, dtype=np.int64)  # estimated work of particles 0..i-1
     work_before[0] = 0
     for i in range(n):
@@ -556,11 +564,16 @@ def thread_blocks(threads, planes, pairs, n):
             work += CONTACT_COST * (wall_overlap[i, w] > 0.0)
         work_before[i + 1] = work_before[i] + work
     bounds = np.empty(threads + 1, dtype=np.int64)
+    i = 0
     for block in range(threads + 1):
-        # the first particle whose preceding work reaches the block's share
-        bounds[block] = np.searchsorted(work_before, block * work_before[n] // threads)
+        # the first particle whose preceding work reaches the block's share (a loop, not
+        # np.searchsorted: the same index, for a fraction of the compile time)
+        share = block * work_before[n] // threads
+        while i < n and work_before[i] < share:
+            i += 1
+        bounds[block] = i
     bounds[threads] = n
-    return bounds, first_partner
+    return bounds
 
 
 @numba.njit(cache=True, parallel=PARALLEL, inline=INLINE)
@@ -578,17 +591,18 @@ def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt
     cost 48 of these per block, and the two threads' cache lines bounced between the
     cores). numba's default schedule gives each thread an equal share of a prange in
     one piece, so those smaller blocks did not balance the load either."""
-    if threads == 1:
-        return force_range(0, bounds[1], particles, law, planes, cylinders, meshes, pairs, gravity, dt, time,
-                           tracking, first_partner, drift_on, position_at_build, half_skin_squared)
-    active, moved_too_far = 0, 0
-    for block in particle_range(threads):
-        block_active, block_moved = force_range(bounds[block], bounds[block + 1], particles, law, planes, cylinders,
-                                                meshes, pairs, gravity, dt, time, tracking, first_partner, drift_on,
-                                                position_at_build, half_skin_squared)
-        active += block_active
-        moved_too_far += block_moved
-    return active, moved_too_far
+    if PARALLEL:  # a compile-time constant: serial kernels compile (and inline) one force_range
+        if threads > 1:
+            active, moved_too_far = 0, 0
+            for block in particle_range(threads):
+                block_active, block_moved = force_range(bounds[block], bounds[block + 1], particles, law, planes,
+                                                        cylinders, meshes, pairs, gravity, dt, time, tracking,
+                                                        first_partner, drift_on, position_at_build, half_skin_squared)
+                active += block_active
+                moved_too_far += block_moved
+            return active, moved_too_far
+    return force_range(0, bounds[1], particles, law, planes, cylinders, meshes, pairs, gravity, dt, time,
+                       tracking, first_partner, drift_on, position_at_build, half_skin_squared)
 
 
 @numba.njit(cache=True, parallel=PARALLEL, inline=INLINE)
@@ -673,9 +687,10 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
                                                first_partner)
         if status[0] != OK:
             return step + 1, False
-        if threads > 1:
-            moved_too_far += finish_kick_drift(particles, pairs, dt, drifted, position_at_build, half_skin_squared,
-                                               threads, bounds, first_partner)
+        if PARALLEL:  # compile-time: a serial kernel has no second pass to compile
+            if threads > 1:
+                moved_too_far += finish_kick_drift(particles, pairs, dt, drifted, position_at_build,
+                                                   half_skin_squared, threads, bounds, first_partner)
         if not TRACK and active > 0 and stats[FIRST_CONTACT_TIME] < 0.0:
             stats[FIRST_CONTACT_TIME] = time  # to the step: only the serial loop interpolates
         if step < trace.shape[0]:
