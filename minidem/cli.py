@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import sys
 import warnings
@@ -24,7 +25,8 @@ def _format_value(value) -> str:
     return str(value)
 
 
-def print_summary(summary: dict, out=sys.stdout) -> None:
+def print_summary(summary: dict, out=None) -> None:
+    out = sys.stdout if out is None else out
     rows = [
         ("law", summary["law"], ""),
         ("impact angle", summary["angle_deg"], "deg"),
@@ -70,6 +72,8 @@ def command_run(args) -> int:
         print(f"minidem: {scene.source}: law '{sim.law.name}' ({sim.entry.distribution} {sim.entry.version}), "
               f"{scene.n_particles} particle(s), {scene.wall_point.shape[0]} wall(s)")
         print(f"  time step {sim.dt:.4g} s ({sim.dt_reason})")
+        chosen = scene.raw.get("run", {}).get("integrator", "auto") == "auto"
+        print(f"  integrator {scene.integrator}" + (" (run.integrator = \"auto\")" if chosen else ""))
         if resume_from is not None:
             print(f"  resuming from {policy.path}: step {resume_from[1]['step']} "
                   f"(t = {resume_from[1]['time']:.6g} s) of {resume_from[1]['total_steps']}")
@@ -267,11 +271,45 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _PipeClosedSink:
+    """sys.stdout for the console command: when the reader of a pipe goes away
+    (`minidem run ... | head`), the rest of the output is dropped and the run carries on
+    to write its result files, instead of dying with BrokenPipeError half-way."""
+
+    def __init__(self, stream):
+        self.stream, self.pipe_closed = stream, False
+
+    def write(self, text: str) -> int:
+        if not self.pipe_closed:
+            try:
+                return self.stream.write(text)
+            except BrokenPipeError:
+                self._close()
+        return len(text)
+
+    def flush(self) -> None:
+        if not self.pipe_closed:
+            try:
+                self.stream.flush()
+            except BrokenPipeError:
+                self._close()
+
+    def _close(self) -> None:
+        self.pipe_closed = True
+        # what is still buffered would fail again when Python exits: send it nowhere
+        os.dup2(os.open(os.devnull, os.O_WRONLY), self.stream.fileno())
+
+    def __getattr__(self, name):
+        return getattr(self.stream, name)
+
+
 def main(argv=None) -> int:
     from minidem.laws import LawError
     from minidem.scenario import ScenarioError
     from minidem.simulation import RunFailure
 
+    if argv is None and not isinstance(sys.stdout, _PipeClosedSink):  # the console command itself
+        sys.stdout = _PipeClosedSink(sys.stdout)
     parser = build_parser()
     args = parser.parse_args(argv)
     with warnings.catch_warnings():

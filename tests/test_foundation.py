@@ -9,13 +9,15 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import (OBLIQUE, PAPER, impact_summary, paper_effective_modulus, paper_mass, run_cli)
+from conftest import (OBLIQUE, PAPER, impact_summary, minidem_command, paper_effective_modulus, paper_mass,
+                      run_cli)
 from minidem import analysis, scenario, simulation
 
 MU = PAPER["friction"]
@@ -270,3 +272,18 @@ def test_contact_law_guide_shows_the_example_plugin_as_it_is():
                 assert value == big[key], f"{where}.{key}: guide {value!r}, plugin {big[key]!r}"
 
     subset(guide_toml, shipped_toml)
+
+
+def test_run_piped_into_a_closed_reader_still_writes_its_results(tmp_path):
+    # `minidem run ... | head -1`: once the reader has gone, every print raises
+    # BrokenPipeError; the run must not die of it ("internal error", found by hand) but
+    # finish and write its files. `| true` makes the reader go before the first line.
+    import shlex
+
+    command = " ".join(shlex.quote(str(part)) for part in
+                       minidem_command() + ["run", OBLIQUE, "--out", tmp_path / "out"])
+    piped = subprocess.run(["bash", "-c", f"{command} | true; exit ${{PIPESTATUS[0]}}"], capture_output=True,
+                           text=True, timeout=300)
+    assert piped.returncode == 0, piped.stderr
+    assert "Error" not in piped.stderr
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["law"] == "hmd"
