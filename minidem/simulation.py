@@ -880,6 +880,7 @@ class Simulation:
                 fail(f"blow-up ({fault.what}) at step {step} (t = {at_time:.6g} s): {fault.detail}; "
                      f"particle {fault.particle} touches " + (", ".join(touching) if touching else "nothing"))
 
+        guard.check(state, start_time, 0.0)  # compiled (or loaded) now: wall_time is the loop's alone
         started = wallclock.perf_counter()
         last_checkpoint_wall = started
         separated, completing = False, False
