@@ -82,6 +82,17 @@ def energy_creation_warning(law: str, ratio, dt, contact_duration) -> str | None
             "created energy (docs/laws.md, 'Laws that create energy')")
 
 
+def incomplete_contact(result: RunResult) -> str | None:
+    """Why the run has no complete rebound to report: the sphere of an impact never
+    touched the wall, or a run meant to stop at separation stopped in contact."""
+    scene = result.scene
+    if scene.impact is not None and result.first_contact_time < 0:
+        return f"no contact by t = {result.time:.4g} s (run.end_time): no rebound to measure"
+    if not result.separated and scene.stop == "separation":
+        return f"the contact had not ended by t = {result.time:.4g} s (run.end_time)"
+    return None
+
+
 def _impact_energy_warning(result: RunResult, ratio: float, duration) -> str | None:
     scene = result.scene
     if scene.impact is None or np.any(scene.gravity != 0.0) or not result.separated:
@@ -110,7 +121,7 @@ def summary(result: RunResult) -> dict:
     duration = (result.last_separation_time - result.first_contact_time
                 if result.first_contact_time >= 0 and result.last_separation_time >= 0 else None)
     ratio = energy_ratio(result)
-    warning = _impact_energy_warning(result, ratio, duration)
+    warnings = [w for w in (incomplete_contact(result), _impact_energy_warning(result, ratio, duration)) if w]
     out.update({
         "contact_duration_s": duration,
         "max_overlap_m": result.max_overlap if result.contact_statistics else None,
@@ -118,7 +129,7 @@ def summary(result: RunResult) -> dict:
         "steps": result.steps,
         "dt_s": result.dt,
         "wall_time_s": result.wall_time,
-        "warnings": [warning] if warning else [],
+        "warnings": warnings,
         "peak_normal_force_n": result.peak_normal_force if result.contact_statistics else None,
         "peak_tangential_force_n": result.peak_tangential_force if result.contact_statistics else None,
         "particles": scene.n_particles,

@@ -109,11 +109,6 @@ def command_run(args) -> int:
         output.write_csv(directory / "trace.csv", TRACE_COLUMNS, result.trace.tolist())
     if not args.quiet:
         print_summary(summary)
-        if scene.impact is not None and result.first_contact_time < 0:
-            print(f"  warning: the sphere had not touched the wall by t = {result.time:.4g} s (run.end_time): "
-                  "no rebound to measure")
-        elif not result.separated and scene.stop == "separation":
-            print(f"  warning: the contact had not ended by t = {result.time:.4g} s (run.end_time)")
         for warning in summary["warnings"]:
             print(f"  warning: {warning}")
         print(f"  wrote {directory / 'summary.json'}, {directory / checkpoint.FINAL_STATE}"

@@ -277,6 +277,13 @@ class Scene:
         return self.radius.shape[0]
 
     @property
+    def one_sphere_among_planes(self) -> bool:
+        """One particle and no cylinder or mesh walls: its free flight to a plane has a
+        closed form (run.integrator = "analytic_flight")."""
+        walls = self.walls
+        return self.n_particles == 1 and not walls.cylinder_base.shape[0] and not walls.triangles.shape[0]
+
+    @property
     def mass(self) -> np.ndarray:
         density = np.array([m.density for m in self.materials])[self.particle_material]
         return 4.0 / 3.0 * math.pi * self.radius**3 * density
@@ -702,9 +709,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         # gravity, nothing to hit but the planes): stepping it at the contact's dt would
         # cost steps and place the first touch only to within a step. Touching at
         # t = 0 it is velocity Verlet, bit for bit.
-        one_sphere_and_planes = (scene.n_particles == 1 and not wall_set.cylinder_base.shape[0]
-                                 and not wall_set.triangles.shape[0])
-        scene.integrator = "analytic_flight" if one_sphere_and_planes else "velocity_verlet"
+        scene.integrator = "analytic_flight" if scene.one_sphere_among_planes else "velocity_verlet"
     _check_geometry(scene)
     return scene
 

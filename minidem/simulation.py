@@ -135,10 +135,6 @@ def cache_directory() -> Path:
 _STABLE_PACKAGES = {"numpy", "numba", "math", "cmath", "builtins", "llvmlite"}
 
 
-def _law_dependencies(law: laws.ContactLaw) -> tuple[str, tuple]:
-    return _force_dependencies(law.force)
-
-
 @functools.lru_cache(maxsize=None)
 def _force_dependencies(force) -> tuple[str, tuple]:
     """Hash of the source of the law's force function and of everything it calls, followed
@@ -204,8 +200,8 @@ def _force_dependencies(force) -> tuple[str, tuple]:
 
 
 def _law_source_hash(law: laws.ContactLaw) -> str:
-    """Hash of the code the law's force function runs (see _law_dependencies)."""
-    return _law_dependencies(law)[0]
+    """Hash of the code the law's force function runs (see _force_dependencies)."""
+    return _force_dependencies(law.force)[0]
 
 
 _LOADED: dict[str, object] = {}
@@ -230,7 +226,7 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
     flags["OPENING_KICK"] = integrate.OPENING_KICK[integrator]
     law = entry.law
     func = law.force.py_func
-    law_hash, law_dispatchers = _law_dependencies(law)
+    law_hash, law_dispatchers = _force_dependencies(law.force)
     key = hashlib.sha256(
         f"{_engine_hash()}|{law_hash}|{entry.distribution}|{entry.version}|{func.__module__}."
         f"{func.__qualname__}|{flags}|{law.vector_history_offsets}|{numba.__version__}|{__version__}".encode()
@@ -636,19 +632,17 @@ class Simulation:
         self.start_time = 0.0
         self.start_position, self.start_velocity = scene.position, scene.velocity
         walls = scene.walls
-        one_sphere_and_planes = (scene.n_particles == 1 and not walls.cylinder_base.shape[0]
-                                 and not walls.triangles.shape[0])
         # the free flight before first touch, also when it is stepped: the default
         # run.end_time of a single impact allows for it (a sphere released far from the
         # wall must still reach it)
         self.flight_time, flight = 0.0, None
-        if one_sphere_and_planes:
+        if scene.one_sphere_among_planes:
             flight = integrate.flight_to_first_touch(scene.position[0], scene.velocity[0], float(scene.radius[0]),
                                                      scene.wall_point, scene.wall_normal, scene.gravity)
             self.flight_time = flight[0] if flight is not None else 0.0
         if scene.integrator != "analytic_flight":
             return
-        if not one_sphere_and_planes:
+        if not scene.one_sphere_among_planes:
             raise ScenarioError(f"{scene.source}: run.integrator = \"analytic_flight\" needs one particle and "
                                 f"plane walls only (the scene has {scene.n_particles} particles, "
                                 f"{walls.cylinder_base.shape[0]} cylinders, {walls.triangles.shape[0]} triangles); "

@@ -223,10 +223,9 @@ def run_case(case: Case) -> dict:
         result = simulation.Simulation(scene).run()
         summary = analysis.summary(result)
         row.update({k: _plain(summary.get(k)) for k in ROW_COLUMNS if k != "case"})
-        if scene.impact is not None and result.first_contact_time < 0:
-            row["status"], row["error"] = "failed", f"no contact by t = {result.time:.4g} s (run.end_time)"
-        elif not result.separated and scene.stop == "separation":
-            row["status"], row["error"] = "failed", f"contact had not ended by t = {result.time:.4g} s"
+        incomplete = analysis.incomplete_contact(result)
+        if incomplete:
+            row["status"], row["error"] = "failed", incomplete
         if case.trace and result.trace is not None:
             row["trace"] = result.trace
     except Exception as exc:  # noqa: BLE001 - a failed case is reported in its row

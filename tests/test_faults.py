@@ -290,22 +290,37 @@ def test_runs_are_deterministic(case):
 # --------------------------------------------------------------------------------------
 # a plugin written outside the repository
 # --------------------------------------------------------------------------------------
-PLUGIN_PYPROJECT = '''
-[build-system]
-requires = ["setuptools>=61"]
-build-backend = "setuptools.build_meta"
+def install_plugin(tmp_path, distribution: str, version: str, entry_point: str, setuptools: str,
+                   files: dict[str, str]):
+    """Write a plugin's pyproject.toml and ``files`` (path -> source) into a folder and
+    install it with pip into ``tmp_path/site`` (a folder for PYTHONPATH, so the test
+    environment stays as it was); return that folder."""
+    source = tmp_path / distribution
+    (source / "pyproject.toml").parent.mkdir(parents=True)
+    (source / "pyproject.toml").write_text(textwrap.dedent(f'''
+        [build-system]
+        requires = ["setuptools>=61"]
+        build-backend = "setuptools.build_meta"
 
-[project]
-name = "minidem-hooke-coulomb"
-version = "2.5.1"
-description = "A contact law written by a third party"
+        [project]
+        name = "{distribution}"
+        version = "{version}"
 
-[project.entry-points.minidem]
-hooke = "minidem_hooke_coulomb"
+        [project.entry-points.minidem]
+        {entry_point}
 
-[tool.setuptools]
-py-modules = ["minidem_hooke_coulomb"]
-'''
+        [tool.setuptools]
+        {setuptools}
+    '''))
+    for name, text in files.items():
+        (source / name).parent.mkdir(parents=True, exist_ok=True)
+        (source / name).write_text(textwrap.dedent(text))
+    site = tmp_path / "site"
+    pip = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
+                          "--target", str(site), str(source)], capture_output=True, text=True)
+    assert pip.returncode == 0, pip.stderr
+    return site
+
 
 PLUGIN_MODULE = '''
 """Linear normal spring, incremental linear tangential spring capped at mu Fn; no damping."""
@@ -362,14 +377,8 @@ def test_a_plugin_written_outside_the_repository_is_installed_listed_run_and_ver
     # pyproject.toml and an entry point, installed with pip (into a folder on PYTHONPATH,
     # so the test environment stays as it was), then `minidem laws`, `minidem run` and
     # `minidem verify` in fresh processes, as a user would.
-    source = tmp_path / "hooke-coulomb"
-    source.mkdir()
-    (source / "pyproject.toml").write_text(textwrap.dedent(PLUGIN_PYPROJECT))
-    (source / "minidem_hooke_coulomb.py").write_text(textwrap.dedent(PLUGIN_MODULE))
-    site = tmp_path / "site"
-    pip = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
-                          "--target", str(site), str(source)], capture_output=True, text=True)
-    assert pip.returncode == 0, pip.stderr
+    site = install_plugin(tmp_path, "minidem-hooke-coulomb", "2.5.1", 'hooke = "minidem_hooke_coulomb"',
+                          'py-modules = ["minidem_hooke_coulomb"]', {"minidem_hooke_coulomb.py": PLUGIN_MODULE})
     env = {"PYTHONPATH": str(site)}
 
     listed = run_cli("laws", env=env)
@@ -440,32 +449,12 @@ def test_an_edited_helper_of_a_plugin_law_rebuilds_its_kernel(tmp_path):
     force function's own cached machine code) came back: found by review, max overlap
     2.08e-4 m twice instead of halving. Expected values from the spring alone: an
     undamped linear spring stops the sphere at v sqrt(m / k) (paper eq 27's oscillator)."""
-    source = tmp_path / "scaled"
-    package = source / "minidem_scaled"
-    (package / "helpers").mkdir(parents=True)
-    (source / "pyproject.toml").write_text(textwrap.dedent('''
-        [build-system]
-        requires = ["setuptools>=61"]
-        build-backend = "setuptools.build_meta"
-
-        [project]
-        name = "minidem-scaled"
-        version = "1.0.0"
-
-        [project.entry-points.minidem]
-        scaled = "minidem_scaled.law"
-
-        [tool.setuptools]
-        packages = ["minidem_scaled", "minidem_scaled.helpers"]
-    '''))
-    (package / "__init__.py").write_text("")
-    (package / "helpers" / "__init__.py").write_text("")
-    (package / "law.py").write_text(textwrap.dedent(HELPER_PLUGIN_LAW))
     helper = "import numba\n\n\n@numba.njit(cache=True)\ndef stiffness_factor():\n    return {}\n"
-    site = tmp_path / "site"
-    pip = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
-                          "--target", str(site), str(source)], capture_output=True, text=True)
-    assert pip.returncode == 0, pip.stderr
+    site = install_plugin(tmp_path, "minidem-scaled", "1.0.0", 'scaled = "minidem_scaled.law"',
+                          'packages = ["minidem_scaled", "minidem_scaled.helpers"]',
+                          {"minidem_scaled/__init__.py": "", "minidem_scaled/helpers/__init__.py": "",
+                           "minidem_scaled/law.py": HELPER_PLUGIN_LAW,
+                           "minidem_scaled/helpers/factor.py": helper.format(1.0)})
     installed_helper = site / "minidem_scaled" / "helpers" / "factor.py"
     # a cache of its own: what is tested is how this cache is reused
     env = {"PYTHONPATH": str(site), "MINIDEM_CACHE_DIR": str(tmp_path / "cache"),
