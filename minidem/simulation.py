@@ -10,6 +10,7 @@ hands frames to an output callback.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -17,6 +18,7 @@ import importlib.util
 import math
 import os
 import inspect
+import signal
 import sys
 import time as wallclock
 import types
@@ -305,8 +307,10 @@ _STATE_TUPLES = {
     "planes": (None, None, None, "plane_history", "plane_overlap"),
     "cylinders": (None, None, None, None, None, "cylinder_history", "cylinder_overlap"),
     "meshes": (None, None, "mesh_offsets", "mesh_candidates", "mesh_history", "mesh_overlap"),
-    "pairs": ("pair_offsets", "pair_neighbours", "pair_history", "pair_overlap", "pair_reaction",
-              "pair_reaction_slot", "pair_reverse_offsets"),
+    # the reactions, their slots and the transposed offsets are not state: the reactions
+    # are rewritten by every step's force pass (zero for entries not touching, as after a
+    # rebuild), the other two follow from the list (State.restore recomputes them)
+    "pairs": ("pair_offsets", "pair_neighbours", "pair_history", "pair_overlap", None, None, None),
 }
 
 
@@ -367,19 +371,22 @@ class State:
         """Copies of every array the kernel carries from one step to the next (the
         contact lists and histories exactly as they are, so no rebuild is needed to go on).
 
-        ``into``: an earlier capture whose arrays are reused where their shapes still
-        fit (a copy into existing memory is ten times cheaper than a new allocation).
+        ``into``: an earlier capture, overwritten in place and returned: its arrays are
+        reused where their shapes still fit (a copy into existing memory is ten times
+        cheaper than a new allocation), and one that no longer fits is released before
+        its replacement is allocated, so that a run never holds two old copies.
         """
         live = {name: getattr(self, name) for name in _STATE_ARRAYS}
         for group, names in _STATE_TUPLES.items():
             live.update((name, array) for name, array in zip(names, getattr(self, group)) if name is not None)
-        arrays = {}
+        arrays = {} if into is None else into
         for name, array in live.items():
-            target = None if into is None else into.get(name)
+            target = arrays.pop(name, None)
             if target is not None and target.shape == array.shape and target.dtype == array.dtype:
                 np.copyto(target, array)
                 arrays[name] = target
             else:
+                del target
                 arrays[name] = array.copy()
         arrays["builds"] = np.array(self.builds, dtype=np.int64)
         return arrays
@@ -393,6 +400,12 @@ class State:
                 if name is not None:  # replaced: list rebuilds change the lengths
                     items[k] = np.array(arrays[name], dtype=items[k].dtype, order="C")
             setattr(self, group, tuple(items))
+        offsets, partners = self.pairs[:2]
+        if partners.shape[0]:
+            reverse_offsets, slot = neighbours.reverse_index(offsets, partners, len(offsets) - 1)
+        else:
+            reverse_offsets, slot = np.zeros_like(offsets), partners.copy()
+        self.pairs = self.pairs[:4] + (np.zeros((partners.shape[0], 6)), slot, reverse_offsets)
         self.builds = int(arrays["builds"])
 
     def count_contacts(self) -> int:
@@ -661,9 +674,13 @@ class Simulation:
         radius = self.scene.radius
         if self.pairs:
             old_offsets, old_neighbours, old_history, old_overlap = state.pairs[:4]
+            # the old reactions, slots and transposed offsets go now, before the new list
+            # is allocated: a rebuild holds two copies of the history, not of everything
+            state.pairs = state.pairs[:4] + (None, None, None)
             offsets, found = neighbours.build_pairs(state.position, radius, self.skin)
             history, overlap = neighbours.carry_history(old_offsets, old_neighbours, old_history, old_overlap,
                                                         offsets, found)
+            del old_offsets, old_neighbours, old_history, old_overlap
             if state.builds == 0:
                 # t = 0: spheres may start touching; their overlap is the 'previous' one
                 first = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
@@ -819,11 +836,23 @@ class Simulation:
 
         def snapshot(reuse=None):
             """The state now, for checkpoints and as the last good state; ``reuse``: an
-            older snapshot whose memory may be overwritten (never the current good one, so
-            a Ctrl-C in the middle of a copy cannot tear it)."""
-            return {"arrays": state.capture(into=reuse["arrays"] if reuse else None),
-                    "tracking": (probe.copy(), stats.copy(), status.copy()),
-                    "loop": dict(loop), "energy": len(energy), "trace": len(trace_chunks)}
+            older snapshot, overwritten in place (one copy of the state, not two)."""
+            with _interrupts_deferred():
+                try:
+                    arrays = state.capture(into=reuse["arrays"] if reuse else None)
+                except KeyboardInterrupt:
+                    # a Ctrl-C that arrived just before the signals were held: the copy
+                    # may be torn, but the live state is still the checked one, so take
+                    # it whole before stopping
+                    if reuse is not None:
+                        record(reuse, state.capture(into=reuse["arrays"]))
+                    raise
+            return record({} if reuse is None else reuse, arrays)
+
+        def record(snap, arrays):
+            snap.update(arrays=arrays, tracking=(probe.copy(), stats.copy(), status.copy()), loop=dict(loop),
+                        energy=len(energy), trace=len(trace_chunks))
+            return snap
 
         def write_state(name, snap, kind):
             arrays = dict(snap["arrays"])
@@ -840,7 +869,7 @@ class Simulation:
                     "total_steps": total_steps, "loop": snap["loop"], "frames_series": series}
             return checkpoint.write(Path(policy.directory) / name, arrays, meta)
 
-        good, spare = snapshot(), None
+        good = snapshot()
         # the run loop, and the energy samples and trace chunks kept, at the end of the last
         # chunk that passed the checks
         checked, checked_counts = dict(loop), (len(energy), len(trace_chunks))
@@ -941,8 +970,8 @@ class Simulation:
                     or (policy.wall_interval and wallclock.perf_counter() - last_checkpoint_wall
                         >= policy.wall_interval))
                 if checkpoint_due or steps - good["loop"]["steps"] >= snapshot_steps:
-                    fresh = snapshot(spare)
-                    spare, good = good, fresh
+                    # after the checks: the state overwriting the last good one is good
+                    good = snapshot(good)
                 if checkpoint_due:
                     write_state(checkpoint.CHECKPOINT, good, "checkpoint")
                     last_checkpoint_wall = wallclock.perf_counter()
@@ -990,6 +1019,21 @@ class Simulation:
         if code == kernel.TUNNELLED:
             return f"particle {particle} passed through {what} {partner} {when}: the time step is too large"
         return f"run stopped with status {code} {when}"
+
+
+@contextlib.contextmanager
+def _interrupts_deferred():
+    """Hold SIGINT and SIGTERM for the duration of the block: they are delivered (and
+    raise KeyboardInterrupt through the CLI's handler) as soon as it ends, so that the
+    copy of the last good state, which a Ctrl-C writes as the checkpoint, is never torn."""
+    if not hasattr(signal, "pthread_sigmask"):  # not on Windows: no deferral there
+        yield
+        return
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
 
 
 def _numba_cause(exc: Exception) -> str:

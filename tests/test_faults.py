@@ -199,6 +199,19 @@ def test_interrupted_impact_resumes_bit_for_bit_and_refuses_another_scenario(tmp
 # --------------------------------------------------------------------------------------
 # blow-ups
 # --------------------------------------------------------------------------------------
+def test_a_ctrl_c_during_the_copy_of_the_last_good_state_waits_for_the_copy():
+    """The last good state is one copy overwritten in place (not two alternating): a
+    Ctrl-C must not tear it, so SIGINT is held while it is copied and raised after."""
+    events = []
+    with pytest.raises(KeyboardInterrupt):
+        with simulation._interrupts_deferred():
+            signal.raise_signal(signal.SIGINT)
+            time.sleep(0.01)  # Python would run its handler here if the signal were not held
+            events.append("copy finished")
+        events.append("after the block")  # never reached: the interrupt comes first
+    assert events == ["copy finished"]
+
+
 def test_blow_up_stops_with_the_last_good_state_and_a_time_step_to_try(tmp_path):
     # The settling scene at 50 times its time step: dt = 1 ms against a Hertz contact
     # time of ~0.3 ms, so contacts inject energy at every step. The run must stop with
