@@ -52,7 +52,12 @@ result = sim.run(on_frame=frames)
 cpu = time.process_time() - cpu
 if frames is not None:
     frames.close()
-print(json.dumps({"wall_s": result.wall_time, "cpu_s": cpu, "steps": result.steps, "threads": result.threads,
+try:
+    import numba
+    layer = numba.threading_layer()
+except ValueError:  # no parallel region ran (one thread, or a scene below PARALLEL_MIN_PARTICLES)
+    layer = None
+print(json.dumps({"layer": layer, "wall_s": result.wall_time, "cpu_s": cpu, "steps": result.steps, "threads": result.threads,
                   "mean_z_m": float(result.position[:, 2].mean()), "kinetic_energy_j": float(result.energy[-1, 1]),
                   "builds": result.neighbour_builds, "setup_rss_kib": setup_rss,
                   "thread_steps": {str(k): v for k, v in result.thread_steps.items()}}))
@@ -185,6 +190,27 @@ def pinned_text(case, one_thread_rate) -> str:
     return f"{rate:.3g}, {rate / one_thread_rate:.2f}x"
 
 
+def memory_growth(cases) -> str:
+    """What N costs in memory: the growth of the peak from the smallest to the largest N,
+    per added particle, minidem (one thread) beside LIGGGHTS."""
+    sizes = sorted({n for _, n in cases})
+    if len(sizes) < 2:
+        return ""
+    small, large = sizes[0], sizes[-1]
+    parts = []
+    for variant in sorted({v for v, _ in cases}):
+        if (variant, small) not in cases or (variant, large) not in cases:
+            continue
+        growth = {code: _median(cases[(variant, large)][code], "peak_rss_mib")
+                  - _median(cases[(variant, small)][code], "peak_rss_mib") for code in ("liggghts", "minidem_1")}
+        per = {code: mib * 1024 * 1024 / (large - small) for code, mib in growth.items()}
+        parts.append(f"{variant}: LIGGGHTS {growth['liggghts']:.0f} MiB ({per['liggghts']:.0f} bytes a particle), "
+                     f"minidem {growth['minidem_1']:.0f} MiB ({per['minidem_1']:.0f} bytes)")
+    return (f"What the particles themselves cost, the growth of the peak from {small:,} to {large:,} particles "
+            "(minidem one thread: particle arrays, wall and pair histories, the Verlet list with its reactions, "
+            "one copy of the last good state; the list entries grow as the pile packs): " + "; ".join(parts) + ".")
+
+
 def section(results: dict, command: str, stamp) -> str:
     cases = results["cases"]
     load_start, load_end = results["load"]
@@ -231,18 +257,19 @@ def section(results: dict, command: str, stamp) -> str:
         two = statistics.median(r["cpu_s"] for r in case.get("minidem_2", [])) if case.get("minidem_2") else None
         cpu_lines.append(f"{variant} {n:,}: {one:.2f} s on 1 thread" + (f", {two:.2f} s on 2 threads" if two else ""))
     base = results["baseline"]
+    layers = sorted({r["layer"] for case in cases.values() for runs in case.values() for r in runs
+                     if isinstance(r, dict) and r.get("layer")})
     lines += [
         "",
         "Process CPU time of minidem's step loop (both threads summed; a check that the second thread adds "
         "work, not waiting): " + "; ".join(cpu_lines) + ".",
+        f"numba threading layer of the two-thread runs: {', '.join(layers) or '-'}.",
         "",
         "Peak memory, split: a fresh interpreter is "
         + ", ".join(f"{k} {v:.0f} MiB" for k, v in base.items())
         + " (numba's first compiled call, even one loaded from the cache, sets up its typing and code-"
-        "generation contexts and LLVM). That baseline is already about three times LIGGGHTS' whole "
-        "process: the <= LIGGGHTS target is not reachable with numba loaded. The simulation's own data is "
-        "the rest of the column above (about 15-25 MiB at 20,000 particles: per-particle arrays, the Verlet "
-        "list with per-entry history, overlap, reaction and index; two threads add the TBB runtime).",
+        "generation contexts and LLVM). That fixed cost is already about three times LIGGGHTS' whole "
+        "process: the <= LIGGGHTS target is not reachable with numba loaded. " + memory_growth(cases),
         "",
     ]
     scaling = results["neighbours"]
