@@ -13,8 +13,12 @@ if TYPE_CHECKING:  # the sweep's parent process reads rows without loading the e
 
 def kinetic_energy(mass, inertia, velocity, angular_velocity) -> float:
     """Translational plus rotational kinetic energy of all particles (J)."""
-    return float(0.5 * np.sum(mass * np.sum(velocity**2, axis=1))
-                 + 0.5 * np.sum(inertia * np.sum(angular_velocity**2, axis=1)))
+    from minidem import integrate  # here: importing analysis must not load numba (see above)
+
+    return float(integrate.kinetic_energy(np.ascontiguousarray(mass, dtype=np.float64),
+                                          np.ascontiguousarray(inertia, dtype=np.float64),
+                                          np.ascontiguousarray(velocity, dtype=np.float64),
+                                          np.ascontiguousarray(angular_velocity, dtype=np.float64)))
 
 
 def energy_ratio(result: RunResult) -> float:

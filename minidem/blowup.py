@@ -30,6 +30,8 @@ import math
 import numba
 import numpy as np
 
+from minidem.integrate import particle_kinetic_energy
+
 # A blow-up grows by orders of magnitude within a few contact times, so generous
 # factors cost almost nothing in detection time and rule out false alarms (velocity
 # Verlet's energy error is O(dt^2), and the integral-form laws create ~1e-3 of the
@@ -121,9 +123,7 @@ def survey(position, velocity, angular_velocity, force, torque, mass, inertia, i
                     and math.isfinite(angular_velocity[p, k]) and math.isfinite(force[p, k])
                     and math.isfinite(torque[p, k])):
                 return p, kinetic, top, work, far, distance
-        energy = 0.5 * (mass[p] * (velocity[p, 0] ** 2 + velocity[p, 1] ** 2 + velocity[p, 2] ** 2)
-                        + inertia[p] * (angular_velocity[p, 0] ** 2 + angular_velocity[p, 1] ** 2
-                                        + angular_velocity[p, 2] ** 2))
+        energy = particle_kinetic_energy(p, mass, inertia, velocity, angular_velocity)
         kinetic += energy
         if energy > top_energy:
             top, top_energy = p, energy

@@ -92,3 +92,22 @@ def flight_to_first_touch(position, velocity, radius, wall_point, wall_normal, g
     moved = moved + (radius - float((moved - wall_point[wall]) @ normal)) * normal
     return best, moved, velocity + gravity * best, wall
 
+
+@numba.njit(cache=True, inline="always")
+def particle_kinetic_energy(p, mass, inertia, velocity, angular_velocity):
+    """Translational plus rotational kinetic energy of particle p (J)."""
+    return 0.5 * (mass[p] * (velocity[p, 0] ** 2 + velocity[p, 1] ** 2 + velocity[p, 2] ** 2)
+                  + inertia[p] * (angular_velocity[p, 0] ** 2 + angular_velocity[p, 1] ** 2
+                                  + angular_velocity[p, 2] ** 2))
+
+
+@numba.njit(cache=True)
+def kinetic_energy(mass, inertia, velocity, angular_velocity):
+    """Kinetic energy of all particles (J), summed in particle order: one compiled pass
+    (numpy's einsum and sums took 0.5 ms at N = 20,000, and the run samples it every
+    chunk; a BLAS dot would also start OpenBLAS threads that spin on the kernel's cores)."""
+    total = 0.0
+    for p in range(mass.shape[0]):
+        total += particle_kinetic_energy(p, mass, inertia, velocity, angular_velocity)
+    return total
+

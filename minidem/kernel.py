@@ -37,7 +37,9 @@ done, while their data are still in cache: legal for p when every row i < p that
 it (holds its reactions, reads its position) is in p's own block, done by then
 (``first_partner``). On one thread that is every particle and the step is one pass; on
 two, finish_kick_drift is left with the particles that have a partner in the block
-before theirs (about one layer of a pile).
+before theirs (about one layer of a pile), and each block leaves as many in all, taking
+its last particles to make up the number, so no thread waits alone on that pass
+(``defer_finishing``).
 
 Every sum is taken in an order fixed by the neighbour list, never by the thread
 schedule, so a run is bit-for-bit the same on any number of threads, and no two
@@ -546,8 +548,35 @@ def thread_blocks(threads, planes, pairs, n):
             first_partner[neighbours[e]] = min(first_partner[neighbours[e]], i)
     if PARALLEL:  # compile-time: serial kernels do not compile the balancing
         if threads > 1:
-            return balanced_bounds(threads, planes, pairs, n), first_partner
+            bounds = balanced_bounds(threads, planes, pairs, n)
+            defer_finishing(bounds, first_partner)
+            return bounds, first_partner
     return np.array([0, n]), first_partner
+
+
+@numba.njit(cache=True)
+def defer_finishing(bounds, first_partner):
+    """Even out the second pass. Block b must leave to finish_kick_drift its particles
+    with a partner in an earlier block (none in the first block, about a layer of a pile
+    in the others): the other threads would wait for those at the second join. Each
+    block therefore also leaves its last particles, as many as the block with the most
+    such particles leaves, so every thread finishes as many in the second pass and as
+    many fewer in the first (the bounds balance the total work). Marked by
+    first_partner = -1 (earlier than any block): which pass finishes a particle does not
+    change a bit of the result (its reactions are all stored by then)."""
+    blocks = bounds.shape[0] - 1
+    left = np.zeros(blocks, dtype=np.int64)
+    for block in range(blocks):
+        for p in range(bounds[block], bounds[block + 1]):
+            left[block] += first_partner[p] < bounds[block]
+    most = left.max()
+    for block in range(blocks):
+        p = bounds[block + 1] - 1
+        while left[block] < most and p >= bounds[block]:
+            if first_partner[p] >= bounds[block]:
+                first_partner[p] = -1
+                left[block] += 1
+            p -= 1
 
 
 @numba.njit(cache=True)

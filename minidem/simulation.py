@@ -70,6 +70,11 @@ STABILITY_SAFETY = 0.2
 # 2.2 ms, 1.5-3 ms), so about 1 % of the run
 SNAPSHOT_PARTICLE_STEPS = 200_000
 SNAPSHOT_STEPS = 100
+# and at least this many times the last copy's duration of wall time apart: a copy is
+# serial, so at 1 % of a one-thread run it was 2 % of a two-thread one (settle,
+# N = 20,000, lattice: 100 steps are 88 ms on two threads, a copy ~2 ms); the copies'
+# spacing changes no result (a failure replays from the copy to the last checked step)
+SNAPSHOT_COST_RATIO = 200
 
 
 class LoopThreads:
@@ -413,11 +418,7 @@ class State:
                    + np.count_nonzero(self.cylinders[6] > 0) + np.count_nonzero(self.meshes[5] > 0))
 
     def kinetic_energy(self, inertia) -> float:
-        # np.sum, not np.dot: a BLAS dot of 20,000 terms starts OpenBLAS threads that
-        # then spin on the cores the kernel's threads need, and its sum order depends on
-        # the BLAS thread count
-        return float(0.5 * np.sum(self.mass * np.einsum("ik,ik->i", self.velocity, self.velocity))
-                     + 0.5 * np.sum(inertia * np.einsum("ik,ik->i", self.angular_velocity, self.angular_velocity)))
+        return float(integrate.kinetic_energy(self.mass, inertia, self.velocity, self.angular_velocity))
 
 
 class Simulation:
@@ -916,6 +917,7 @@ class Simulation:
         started = wallclock.perf_counter()
         last_checkpoint_wall = started
         separated, completing = False, False
+        copied_wall, copy_seconds = started, 0.0
         chunk_goal = min(chunk_steps, 100)  # grown to about 0.2 s of wall time per chunk
         try:
             while loop["steps"] < total_steps:
@@ -969,9 +971,13 @@ class Simulation:
                     (checkpoint_steps and steps % checkpoint_steps == 0)
                     or (policy.wall_interval and wallclock.perf_counter() - last_checkpoint_wall
                         >= policy.wall_interval))
-                if checkpoint_due or steps - good["loop"]["steps"] >= snapshot_steps:
+                now_wall = wallclock.perf_counter()
+                if checkpoint_due or (steps - good["loop"]["steps"] >= snapshot_steps
+                                      and now_wall - copied_wall >= SNAPSHOT_COST_RATIO * copy_seconds):
                     # after the checks: the state overwriting the last good one is good
                     good = snapshot(good)
+                    copied_wall = wallclock.perf_counter()
+                    copy_seconds = copied_wall - now_wall
                 if checkpoint_due:
                     write_state(checkpoint.CHECKPOINT, good, "checkpoint")
                     last_checkpoint_wall = wallclock.perf_counter()

@@ -319,6 +319,24 @@ def test_same_bits_on_one_and_two_threads(monkeypatch):
         assert np.array_equal(runs[0].angular_velocity, other.angular_velocity)
 
 
+def test_second_pass_is_shared_evenly_between_the_threads():
+    """The particles with a partner in an earlier block must wait for the second pass;
+    each other block leaves as many of its last particles to it, so no thread waits
+    alone there (kernel.defer_finishing). Which pass finishes a particle changes no bit:
+    test_same_bits_on_one_and_two_threads runs it."""
+    kernel = simulation.Simulation(scenario.load_scene(
+        "scenarios/settle.toml", DEEP_PILE[1:] + ["fill.0.count=200", "output.vtk=false"])).kernel
+    # three blocks of 6: block 1 has 3 particles listed by a row of block 0, block 2 has 1
+    first_partner = np.arange(18)
+    first_partner[[6, 7, 8]] = 2
+    first_partner[13] = 9
+    bounds = np.array([0, 6, 12, 18])
+    kernel.defer_finishing(bounds, first_partner)
+    second_pass = [[p for p in range(bounds[b], bounds[b + 1]) if first_partner[p] < bounds[b]] for b in range(3)]
+    assert second_pass == [[3, 4, 5], [6, 7, 8], [13, 16, 17]]
+    assert np.array_equal(first_partner[[6, 7, 8, 13]], [2, 2, 2, 9])  # the cross-block ones untouched
+
+
 def test_loop_threads_keep_the_faster_count():
     # two threads allowed; one thread is measured faster (a loaded machine): the run
     # switches to it at the first probe, and probes two threads again later, ever more
