@@ -28,7 +28,13 @@ def test_every_shipped_scenario_is_found():
 def test_shipped_scenario_validates(path, tmp_path):
     data = scenario.read_toml(path)
     if sweep.has_sweep(data):
-        plan = sweep.plan(data, str(path))  # validates every case's scenario too
+        if path.name == "figs02-04_ls_kappa.toml":
+            # the paper's Table 1 varies the stiffness ratio through nu up to 0.83: accepted,
+            # with a warning naming the file and key
+            with pytest.warns(UserWarning, match=r"materials\.glass\.poisson_ratio = 0\.\d+ > 0\.5 is not physical"):
+                plan = sweep.plan(data, str(path))
+        else:
+            plan = sweep.plan(data, str(path))  # validates every case's scenario too
         assert plan.cases
     else:
         scene = scenario.load_scene(path, output_directory=tmp_path)
