@@ -205,7 +205,8 @@ def command_verify(args) -> int:
 
     out = args.out or Path("out") / f"verify-{args.law}"
     checks = verify.run_battery(args.law, args.set, out)
-    print(f"minidem verify {args.law}")
+    # the battery as run: its --set values change what it checks
+    print(" ".join(["minidem verify", args.law, *(f"--set {value}" for value in args.set or ())]))
     print(verify.format_table(checks))
     print(f"  report: {out / 'verify.json'}, {out / 'verify.png'}")
     return EXIT_FAILURE if any(c.passed is False for c in checks) else EXIT_OK

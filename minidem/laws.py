@@ -21,7 +21,10 @@ import hashlib
 import importlib.metadata
 import inspect
 import math
+import numbers
+import os
 import re
+import sys
 import traceback
 from typing import Any, Callable, Mapping
 
@@ -31,6 +34,10 @@ from minidem import hookspecs
 
 ENTRY_POINT_GROUP = hookspecs.PROJECT_NAME
 _NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_]*$")
+_ALIAS_PATTERN = re.compile(r"^[a-z][a-z0-9_-]*$")  # matched lower-cased: the paper's names, e.g. "h-mdns"
+# the force function's arguments, in the order the engine passes them
+FORCE_ARGUMENTS = ("constants", "effective_radius", "effective_mass", "normal_overlap", "normal_overlap_increment",
+                   "normal_velocity", "tangential_increment", "tangential_velocity", "history")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -223,7 +230,11 @@ class ContactLaw:
         """Run ``prepare`` and order its result as the force function expects."""
         import numpy as np
 
-        produced = dict(self.prepare(pair, dict(params)))
+        produced = self.prepare(pair, dict(params))
+        if not isinstance(produced, Mapping):
+            raise LawError(f"law '{self.name}': prepare() must return a dict of constants, "
+                           f"got {type(produced).__name__}")
+        produced = dict(produced)
         missing = [c for c in self.constants if c not in produced]
         if missing:
             raise LawError(f"law '{self.name}': prepare() did not return constants {missing}")
@@ -257,6 +268,7 @@ class BrokenPlugin:
     plugin: str
     law: str | None
     reason: str
+    aliases: tuple[str, ...] = ()  # the refused law's other names, so a lookup by one finds this
 
 
 @dataclasses.dataclass
@@ -273,6 +285,7 @@ class LawRegistry:
     def __init__(self):
         self._laws: dict[str, RegisteredLaw] = {}
         self._aliases: dict[str, str] = {}
+        self._contested: dict[str, str] = {}  # a name two plugins claimed -> who claimed it
         self.broken: list[BrokenPlugin] = []
         self._current = ("<direct>", "<direct>", "")
 
@@ -281,15 +294,51 @@ class LawRegistry:
         plugin, dist, version = self._current
         problem = _declaration_problem(law)
         name = getattr(law, "name", None)
-        if problem is None and (name in self._laws or name in self._aliases):
-            owner = self._laws.get(name) or self._laws[self._aliases[name]]
-            problem = f"name '{name}' is already taken by plugin '{owner.plugin}' ({owner.distribution})"
+        if problem is None:
+            problem = self._claim_problem(law, plugin, dist)
         if problem is not None:
-            self.broken.append(BrokenPlugin(plugin, name if isinstance(name, str) else None, problem))
+            aliases = tuple(a.lower() for a in getattr(law, "aliases", ()) if isinstance(a, str)) \
+                if isinstance(getattr(law, "aliases", None), tuple) else ()
+            self.broken.append(BrokenPlugin(plugin, name if isinstance(name, str) else None, problem, aliases))
             return
         self._laws[law.name] = RegisteredLaw(law, plugin, dist, version)
         for alias in law.aliases:
-            self._aliases.setdefault(alias.lower(), law.name)
+            if alias.lower() != law.name:
+                self._aliases[alias.lower()] = law.name
+
+    def _owner(self, name: str) -> RegisteredLaw | None:
+        if name in self._laws:
+            return self._laws[name]
+        return self._laws.get(self._aliases.get(name, ""))
+
+    def _claim_problem(self, law: ContactLaw, plugin: str, dist: str) -> str | None:
+        """Why ``law`` cannot have its name and aliases, or None. minidem's own laws are
+        registered first and keep theirs: a plugin never replaces a built-in law, under
+        its name or an alias. Two plugins claiming one name are both refused (which
+        plugin sorts first must not decide which law a scenario runs)."""
+        for claimed in dict.fromkeys([law.name, *(a.lower() for a in law.aliases)]):
+            if claimed in self._contested:
+                return (f"name '{claimed}' is claimed by more than one plugin ({self._contested[claimed]}); "
+                        "none of them gets it: uninstall all but one")
+            owner = self._owner(claimed)
+            if owner is None:
+                continue
+            what = "name" if claimed == law.name else "alias"
+            if owner.distribution == hookspecs.PROJECT_NAME or owner.plugin == plugin:
+                why = "; a plugin cannot replace a built-in law" if owner.plugin != plugin else ""
+                return (f"{what} '{claimed}' is already taken by plugin '{owner.plugin}' ({owner.distribution}), "
+                        f"law '{owner.law.name}'{why}")
+            # two third-party plugins: withdraw the first one's law too
+            claimants = f"'{owner.plugin}' ({owner.distribution}) and '{plugin}' ({dist})"
+            self._contested[claimed] = claimants
+            del self._laws[owner.law.name]
+            self._aliases = {a: n for a, n in self._aliases.items() if n != owner.law.name}
+            reason = (f"name '{claimed}' is claimed by plugins {claimants}; neither law is used: "
+                      "uninstall one of them")
+            self.broken.append(BrokenPlugin(owner.plugin, owner.law.name, reason,
+                                            tuple(a.lower() for a in owner.law.aliases)))
+            return reason
+        return None
 
     # -- lookup -------------------------------------------------------------------
     def names(self) -> list[str]:
@@ -300,16 +349,21 @@ class LawRegistry:
 
     def entry(self, name: str) -> RegisteredLaw:
         key = name.lower() if isinstance(name, str) else name
-        key = self._aliases.get(key, key)
-        if key in self._laws:
+        if key in self._laws:  # a name before an alias
             return self._laws[key]
+        if key in self._aliases:
+            return self._laws[self._aliases[key]]
         for b in self.broken:
-            if b.law == name:
+            if b.law is not None and (key == b.law or key in b.aliases):
                 raise LawError(f"law '{name}' from plugin '{b.plugin}' is broken: {b.reason}")
         candidates = self.names() + sorted(self._aliases)
-        close = difflib.get_close_matches(str(name), candidates, n=1)
+        close = difflib.get_close_matches(str(key), candidates, n=1)
         hint = f" Did you mean '{close[0]}'?" if close else ""
-        raise LawError(f"unknown contact law '{name}'.{hint} Available: {', '.join(self.names())}")
+        failed = [b for b in self.broken if b.law is None]
+        if failed:
+            hint += (f" {len(failed)} plugin(s) failed to load, so their laws are unknown: "
+                     + "; ".join(f"'{b.plugin}': {b.reason}" for b in failed) + " (see `minidem laws`).")
+        raise LawError(f"unknown contact law '{name}'. Available: {', '.join(self.names())}.{hint}")
 
     def get(self, name: str) -> ContactLaw:
         return self.entry(name).law
@@ -338,14 +392,47 @@ def _declaration_problem(law) -> str | None:
             return f"default of parameter '{p.name}' {p.check(p.default)}"
     if not isinstance(law.constants, tuple) or not all(isinstance(c, str) for c in law.constants):
         return "'constants' must be a tuple of names"
+    if not isinstance(law.aliases, tuple) or not all(
+            isinstance(a, str) and _ALIAS_PATTERN.match(a.lower()) for a in law.aliases):
+        return (f"'aliases' must be a tuple of names (letters, digits, '_' and '-', starting with a letter), "
+                f"got {law.aliases!r}")
     if not callable(law.prepare):
         return "'prepare' is not callable"
+    for hook in ("contact_time", "stiffness"):
+        if getattr(law, hook) is not None and not callable(getattr(law, hook)):
+            return f"'{hook}' must be a function or None, got {type(getattr(law, hook)).__name__}"
     if not hasattr(law.force, "py_func"):
         return "'force' is not a numba-compiled function (decorate it with @numba.njit)"
     func = law.force.py_func
     if "<locals>" in func.__qualname__ or func.__module__ == "__main__":
         return "'force' must be defined at module level in an importable module"
+    try:
+        force_import_name(law)
+    except LawError as exc:
+        return str(exc)
+    arguments = [p for p in inspect.signature(func).parameters.values()
+                 if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    if len(arguments) != len(FORCE_ARGUMENTS):
+        return (f"'force' ({func.__qualname__}) takes {len(arguments)} arguments; the engine calls it with "
+                f"{len(FORCE_ARGUMENTS)}: ({', '.join(FORCE_ARGUMENTS)})")
     return None
+
+
+def force_import_name(law: ContactLaw) -> tuple[str, str]:
+    """(module, attribute) under which the law's compiled force function can be imported:
+    the engine's kernel imports it from there. Usually the function's own name; for
+    ``force = numba.njit(_force_impl)`` the name it was bound to."""
+    func = law.force.py_func
+    module = sys.modules.get(func.__module__)
+    if module is None:
+        raise LawError(f"'force': its module '{func.__module__}' is not imported")
+    if getattr(module, func.__qualname__, None) is law.force:
+        return func.__module__, func.__qualname__
+    for attribute, value in vars(module).items():
+        if value is law.force:
+            return func.__module__, attribute
+    raise LawError(f"'force' ({func.__qualname__}) is not a module-level name of {func.__module__}: "
+                   "the engine imports it from there (bind the compiled function to a name at module level)")
 
 
 def _distribution_of(entry_point) -> tuple[str, str]:
@@ -395,9 +482,19 @@ def load_registry(extra_plugins: tuple = ()) -> LawRegistry:
 
 
 def _one_line(exc: BaseException) -> str:
-    where = traceback.extract_tb(exc.__traceback__)[-1] if exc.__traceback__ else None
-    at = f" (at {where.filename}:{where.lineno})" if where else ""
-    return f"{type(exc).__name__}: {exc}{at}"
+    """Type, message and where: the innermost frame that is the plugin's own code (not
+    importlib's, pluggy's or minidem's, which only carried the call), on one line."""
+    frames = traceback.extract_tb(exc.__traceback__) if exc.__traceback__ else []
+    own = [f for f in frames if not f.filename.startswith("<frozen")
+           and not any(part in f.filename for part in (f"{os.sep}pluggy{os.sep}", f"{os.sep}importlib{os.sep}",
+                                                        f"{os.sep}minidem{os.sep}laws.py"))]
+    if isinstance(exc, SyntaxError) and exc.filename:
+        where = f" (at {exc.filename}:{exc.lineno})"
+    elif own:
+        where = f" (at {own[-1].filename}:{own[-1].lineno})"
+    else:  # raised by the machinery itself (a module not found, a hook's wrong arguments)
+        where = ""
+    return " ".join(f"{type(exc).__name__}: {exc}{where}".split())
 
 
 _REGISTRY: LawRegistry | None = None
@@ -415,8 +512,27 @@ def law_contact_time(law: ContactLaw, pair: ContactPair, constants: Mapping[str,
                      effective_radius: float, effective_mass: float, normal_speed: float) -> float:
     """The law's normal-impact duration (its own ``contact_time`` or Hertz, eq 13)."""
     if law.contact_time is not None:
-        return float(law.contact_time(pair, constants, effective_radius, effective_mass, normal_speed))
+        value = _call_law_function(law, "contact_time", law.contact_time, pair, constants, effective_radius,
+                                   effective_mass, normal_speed)
+        if not _positive_duration(value):
+            raise LawError(f"law '{law.name}': contact_time() returned {value!r}; it must be a duration in s, "
+                           "> 0 (math.inf where the law has no finite contact time)")
+        return float(value)
     return hertz_contact_time(pair.effective_modulus, effective_radius, effective_mass, normal_speed)
+
+
+def _call_law_function(law: ContactLaw, what: str, function, *args):
+    """A law's own Python function (user code): any failure is the law's, reported as such."""
+    try:
+        return function(*args)
+    except LawError:
+        raise
+    except Exception as exc:  # noqa: BLE001
+        raise LawError(f"law '{law.name}': its {what}() failed: {_one_line(exc)}") from exc
+
+
+def _positive_duration(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool) and value > 0.0
 
 
 def hertz_mindlin_stiffness(pair: ContactPair, effective_radius: float, normal_overlap: float) -> tuple[float, float]:
@@ -431,6 +547,12 @@ def law_stiffness(law: ContactLaw, pair: ContactPair, constants: Mapping[str, fl
     """(kn, kt, damping ratio) of a law's contact at an overlap, for the stability limit:
     the law's own ``stiffness`` or undamped Hertz-Mindlin."""
     if law.stiffness is not None:
-        kn, kt, zeta = law.stiffness(pair, constants, effective_radius, effective_mass, normal_overlap)
-        return float(kn), float(kt), float(zeta)
+        result = _call_law_function(law, "stiffness", law.stiffness, pair, constants, effective_radius,
+                                    effective_mass, normal_overlap)
+        values = tuple(result) if isinstance(result, (tuple, list)) else ()
+        if len(values) != 3 or not all(isinstance(x, numbers.Real) and not isinstance(x, bool)
+                                       and math.isfinite(x) and x >= 0.0 for x in values):
+            raise LawError(f"law '{law.name}': stiffness() returned {result!r}; it must return "
+                           "(kn N/m, kt N/m, damping ratio), three finite numbers >= 0")
+        return float(values[0]), float(values[1]), float(values[2])
     return (*hertz_mindlin_stiffness(pair, effective_radius, normal_overlap), 0.0)

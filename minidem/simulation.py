@@ -232,11 +232,11 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
     flags = dict(zip(KERNEL_FLAGS, (bool(spin), bool(pairs), bool(cylinders), bool(meshes), bool(parallel))))
     flags["OPENING_KICK"] = integrate.OPENING_KICK[integrator]
     law = entry.law
-    func = law.force.py_func
+    force_module, force_name = laws.force_import_name(law)
     law_hash, law_dispatchers = _force_dependencies(law.force)
     key = hashlib.sha256(
-        f"{_engine_hash()}|{law_hash}|{entry.distribution}|{entry.version}|{func.__module__}."
-        f"{func.__qualname__}|{flags}|{law.vector_history_offsets}|{numba.__version__}|{__version__}".encode()
+        f"{_engine_hash()}|{law_hash}|{entry.distribution}|{entry.version}|{force_module}."
+        f"{force_name}|{flags}|{law.vector_history_offsets}|{numba.__version__}|{__version__}".encode()
     ).hexdigest()[:16]
     module_name = f"minidem_kernel_{law.name}_{key}"
     if module_name in _LOADED:
@@ -245,7 +245,7 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
     head, rest = template.split(_BLOCK_START, 1)
     _, tail = rest.split(_BLOCK_END, 1)
     block = (f"{_BLOCK_START} (law '{law.name}' from {entry.distribution} {entry.version})\n"
-             f"from {func.__module__} import {func.__qualname__} as law_force  # noqa: E402\n\n"
+             f"from {force_module} import {force_name} as law_force  # noqa: E402\n\n"
              + "".join(f"{name} = {value}\n" for name, value in flags.items())
              # the law's vector history slots, as a compile-time constant the kernel unrolls
              + f"VECTOR_OFFSETS = {tuple(law.vector_history_offsets)!r}\n" + _BLOCK_END)
@@ -479,8 +479,11 @@ class Simulation:
                 except laws.LawError:
                     raise
                 except Exception as exc:  # noqa: BLE001 - a plugin's prepare() is user code
+                    # a ValueError is how prepare() refuses parameters (its message is for the
+                    # user); anything else is a bug in it: say what and where
+                    why = str(exc) if type(exc) is ValueError else laws._one_line(exc)
                     raise laws.LawError(f"law '{law.name}' ({self.entry.distribution}): prepare() failed for "
-                                        f"materials '{materials[a].name}'/'{materials[b].name}': {exc}") from exc
+                                        f"materials '{materials[a].name}'/'{materials[b].name}': {why}") from exc
                 self.pair_row[a, b] = self.pair_row[b, a] = len(rows)
                 rows.append(row)
                 self.pairs_[(a, b)] = pair
@@ -826,8 +829,7 @@ class Simulation:
                 call(loop["steps"], 0, False, no_trace)  # changes nothing: the resumed state is untouched
         except numba.core.errors.NumbaError as exc:
             raise laws.LawError(f"law '{self.law.name}' from plugin '{self.entry.plugin}' "
-                                f"({self.entry.distribution}): its force function does not compile in the "
-                                f"engine: {_numba_cause(exc)}") from exc
+                                f"({self.entry.distribution}): {_force_problem(self.law, exc)}") from exc
         if resume_from is None:
             energy.append((start_time, state.kinetic_energy(inertia)))
             if frames_on:
@@ -1043,11 +1045,43 @@ def _interrupts_deferred():
 
 
 def _numba_cause(exc: Exception) -> str:
-    """The informative lines of a numba error (it buries the cause among 'During:' lines)."""
+    """The informative lines of a numba error (it buries the cause among 'During:' lines):
+    the message, and where in the law's own code (never the generated kernel's lines)."""
     lines = [line.strip() for line in str(exc).splitlines()]
-    useful = [line for line in lines if line and not line.startswith(("File ", "During:", "^", "def "))
-              and "Failed in nopython mode pipeline" not in line and "is not typed" not in line[:0]]
-    return "; ".join(useful[:3]) or lines[0]
+    message = [line for line in lines if line and not line.startswith(("File ", "During:", "^", "def ", "<source"))
+               and "Failed in nopython mode pipeline" not in line]
+    places = [line.rstrip(":") for line in lines if line.startswith("File ")
+              and "minidem_kernel_" not in line and f"minidem{os.sep}kernel.py" not in line]
+    where = f" ({places[-1]})" if places else ""
+    return ("; ".join(message[:2]) or lines[0]) + where
+
+
+# the argument types the kernel passes a law's force function (minidem.laws.FORCE_ARGUMENTS)
+_FORCE_SIGNATURE = (numba.types.Array(numba.types.float64, 1, "C"), *(numba.types.float64,) * 5,
+                    numba.types.UniTuple(numba.types.float64, 3), numba.types.UniTuple(numba.types.float64, 3),
+                    numba.types.Array(numba.types.float64, 1, "C"))
+
+
+def _force_problem(law: laws.ContactLaw, exc: Exception) -> str:
+    """Why a law's force function broke the kernel's compilation: compiled alone with the
+    engine's argument types, so the message names the law's function and file (and a
+    wrong return value), not the kernel line that called it."""
+    func = law.force.py_func
+    try:
+        _, line = inspect.getsourcelines(func)
+        where = f"{func.__qualname__} in {inspect.getsourcefile(func)}, line {line}"
+    except (OSError, TypeError):
+        where = func.__qualname__
+    try:
+        law.force.compile(_FORCE_SIGNATURE)
+    except numba.core.errors.NumbaError as alone:
+        return f"its force function {where} does not compile: {_numba_cause(alone)}"
+    returned = law.force.overloads[_FORCE_SIGNATURE].signature.return_type
+    if not (isinstance(returned, numba.types.BaseTuple) and len(returned) == 4
+            and all(isinstance(t, (numba.types.Float, numba.types.Integer)) for t in returned)):
+        return (f"its force function {where} must return 4 numbers (fn, ftx, fty, ftz), "
+                f"it returns {returned}")
+    return f"its force function {where} does not compile in the engine: {_numba_cause(exc)}"
 
 
 def run_scene(scene: Scene, progress=None) -> RunResult:

@@ -101,6 +101,44 @@ class Battery:
                       f"{summary['contact_duration_s']:.6g} s vs {expected:.6g} s ({error:+.2%})", "within 0.5 %",
                       "the law's own contact_time (Hertz eq 13 when it declares none)")]
 
+    def history_bounds(self) -> list[Check]:
+        """The force function writes only the history slots the law declares. numba does
+        not check array bounds: a write past them would land in the next contact's row
+        (or past the array) unnoticed. The force is called directly, on a history row
+        followed by guard values, along an oblique loading-unloading path whose
+        tangential velocity turns and reverses (every branch a tangential law has)."""
+        size = self.law.history_size
+        scene = scenario.build_scene(copy.deepcopy(self.base), source=f"<verify {self.law.name}>",
+                                     output_directory="-")
+        radius, mass = float(scene.radius[0]), float(scene.mass[0])
+        pair = laws.ContactPair.from_materials(scene.materials[0], scene.materials[0], radius, mass, 5.0)
+        row, constants = self.law.prepared_constants(pair, scene.law_parameters)
+        duration = laws.law_contact_time(self.law, pair, constants, radius, mass, 5.0)
+        duration = duration if math.isfinite(duration) else 1e-4
+        normal_speed, tangential_speed = 5.0 * math.cos(math.radians(30.0)), 5.0 * math.sin(math.radians(30.0))
+        peak = normal_speed * duration / math.pi  # the overlap's scale (exact for a linear spring)
+        guards = 16
+        buffer = np.full(size + guards, 1.2345678e-300)  # a value no law writes by accident
+        buffer[:size] = 0.0
+        history, steps, previous = buffer[:size], 200, 0.0
+        dt = duration / steps
+        for step in range(1, steps):
+            phase = math.pi * step / steps
+            overlap = peak * math.sin(phase)
+            velocity = (tangential_speed * math.cos(2.0 * phase), 0.3 * tangential_speed * math.sin(3.0 * phase), 0.0)
+            self.law.force(row, radius, mass, overlap, overlap - previous, normal_speed * math.cos(phase),
+                           (velocity[0] * dt, velocity[1] * dt, velocity[2] * dt), velocity, history)
+            previous = overlap
+            written = np.flatnonzero(buffer[size:] != 1.2345678e-300)
+            if written.size:
+                return [Check("history stays in its declared slots", False,
+                              f"step {step}: the force wrote history[{size + int(written[0])}]; the law declares "
+                              f"{size} slot(s)", f"writes only history[0:{size}]",
+                              "the law's HistorySlot declarations (docs/writing-a-contact-law.md)")]
+        return [Check("history stays in its declared slots", True,
+                      f"{steps - 1} calls along an oblique load-unload path", f"writes only history[0:{size}]",
+                      "the law's HistorySlot declarations (docs/writing-a-contact-law.md)")]
+
     def against_hmd(self) -> tuple[list[Check], dict]:
         curves = {"angle_deg": list(PAPER_ANGLES)}
         for law in (self.law.name, "hmd"):
@@ -240,7 +278,7 @@ def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
 
 def run_battery(law_name: str, overrides: list[str] = (), out_directory: Path | None = None) -> list[Check]:
     battery = Battery(law_name, overrides)
-    checks = battery.energy() + battery.sliding_limit() + battery.duration()
+    checks = battery.history_bounds() + battery.energy() + battery.sliding_limit() + battery.duration()
     comparison, curves = battery.against_hmd()
     loop, trace = battery.first_loop()
     checks += comparison + loop + battery.convergence() + battery.pair_collision()

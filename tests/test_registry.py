@@ -108,6 +108,48 @@ FAKE_PLUGINS = {
     "fake_import_error": '''
         import a_module_that_does_not_exist_anywhere
     ''',
+    "fake_names": '''
+        def _impl(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+                  normal_velocity, tangential_increment, tangential_velocity, history):
+            return constants[0] * normal_overlap, 0.0, 0.0, 0.0
+
+        bound_force = numba.njit(_impl)  # the common idiom: the compiled function under another name
+
+        @numba.njit
+        def three_values_force(constants, effective_radius, effective_mass, normal_overlap,
+                               normal_overlap_increment, normal_velocity, tangential_increment,
+                               tangential_velocity, history):
+            return constants[0] * normal_overlap, 0.0, 0.0
+
+        @numba.njit
+        def short_force(constants, effective_radius, effective_mass, normal_overlap):
+            return constants[0] * normal_overlap, 0.0, 0.0, 0.0
+
+        def broken_contact_time(pair, constants, effective_radius, effective_mass, normal_speed):
+            return constants["stifness"]  # a typo: KeyError
+
+        @hookimpl
+        def minidem_register_laws(registry):
+            registry.add(law("fake_alias_thief", aliases=("HM", "fake_thief")))  # 'hm' is built in
+            registry.add(law("fake_string_alias", aliases="sd"))
+            registry.add(law("fake_bound", force=bound_force, aliases=("fake_b",)))
+            registry.add(law("fake_three_values", force=three_values_force))
+            registry.add(law("fake_short", force=short_force))
+            registry.add(law("fake_bad_time", contact_time=broken_contact_time))
+            registry.add(law("fake_negative_time", contact_time=lambda *args: -1.0))
+            registry.add(law("fake_number_time", contact_time=1e-4))
+            registry.add(law("fake_none_prepare", prepare=lambda pair, params: None))
+    ''',
+    "fake_claim_a": '''
+        @hookimpl
+        def minidem_register_laws(registry):
+            registry.add(law("fake_claimed", aliases=("fake_claimed_alias",)))
+    ''',
+    "fake_claim_b": '''
+        @hookimpl
+        def minidem_register_laws(registry):
+            registry.add(law("fake_claimed"))
+    ''',
     "fake_frame": '''
         @numba.njit(cache=True)
         def global_x_drag_force(constants, effective_radius, effective_mass, normal_overlap,
@@ -222,6 +264,53 @@ def test_bad_declarations_are_reported_one_by_one(fake_site):
     with pytest.raises(laws.LawError, match="fake_plain.*fake_bad_laws.*is broken.*numba"):
         registry.get("fake_plain")
     assert_builtin_laws_run(registry)
+
+
+def test_a_plugin_alias_never_takes_a_builtin_name_and_aliases_are_checked(fake_site):
+    registry = load("fake_names")
+    broken = broken_by_law(registry)
+    # 'HM' is the built-in law's name: the whole law is refused, 'hm' stays the built-in
+    assert "alias 'hm' is already taken by plugin 'builtin' (minidem)" in broken["fake_alias_thief"].reason
+    assert registry.entry("hm").plugin == "builtin" and registry.entry("HM").plugin == "builtin"
+    with pytest.raises(laws.LawError, match="'fake_thief' from plugin 'fake_names' is broken"):
+        registry.get("fake_thief")  # an alias of the refused law finds it, not a did-you-mean
+    assert "'aliases' must be a tuple of names" in broken["fake_string_alias"].reason
+    # a compiled function bound under another name is imported by that name
+    assert laws.force_import_name(registry.get("fake_bound")) == ("fake_names", "bound_force")
+    assert "takes 4 arguments" in broken["fake_short"].reason and "tangential_velocity" in broken["fake_short"].reason
+    assert "'contact_time' must be a function or None, got float" in broken["fake_number_time"].reason
+
+
+def test_two_plugins_claiming_one_name_are_both_refused(fake_site):
+    """Which plugin sorts first must not decide which law a scenario runs."""
+    registry = load("fake_claim_a", "fake_claim_b")
+    assert "fake_claimed" not in registry.names()
+    refused = [b for b in registry.broken if b.law == "fake_claimed"]
+    assert sorted(b.plugin for b in refused) == ["fake_claim_a", "fake_claim_b"]
+    assert all("claimed by plugins 'fake_claim_a'" in b.reason and "uninstall one" in b.reason for b in refused)
+    with pytest.raises(laws.LawError, match="fake_claimed.*is broken.*claimed by plugins"):
+        registry.get("fake_claimed_alias")
+
+
+def test_unknown_law_names_the_plugins_that_failed_to_load(announced):
+    with pytest.raises(laws.LawError) as info:
+        laws.load_registry().get("a_law_of_the_missing_plugin")
+    message = str(info.value)
+    assert "unknown contact law" in message and re.search(r"\d plugin\(s\) failed to load", message)
+    assert "'missing (minidem-fakeplugin)'" in message and "a_module_that_does_not_exist_anywhere" in message
+
+
+@pytest.mark.parametrize("law_name, expected", [
+    ("fake_three_values", r"three_values_force in .*fake_names\.py, line \d+ must return 4 numbers "
+                          r"\(fn, ftx, fty, ftz\), it returns "),
+    ("fake_bad_time", r"contact_time\(\) failed: KeyError: 'stifness' \(at .*fake_names\.py:\d+\)"),
+    ("fake_negative_time", r"contact_time\(\) returned -1\.0; it must be a duration in s"),
+    ("fake_none_prepare", r"prepare\(\) must return a dict of constants, got NoneType"),
+])
+def test_mistakes_in_a_law_are_reported_with_the_law_and_where(fake_site, monkeypatch, law_name, expected):
+    registry = load("fake_names")
+    with pytest.raises(laws.LawError, match=expected):
+        simulation.Simulation(_fake_scene(law_name, registry, monkeypatch), registry=registry).run()
 
 
 def test_a_hook_that_raises_is_reported(fake_site):

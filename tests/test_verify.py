@@ -42,3 +42,51 @@ def test_cli_exit_code_reports_failure(tmp_path):
     assert "FAIL" in bad.stdout and "PASS" in bad.stdout
     unknown = subprocess.run([sys.executable, "-m", "minidem.cli", "verify", "hdm"], capture_output=True, text=True)
     assert unknown.returncode == 2 and "did you mean" in unknown.stderr.lower() and "hmd" in unknown.stderr
+
+
+OVERRUN_PLUGIN = '''
+import numba
+
+from minidem import hookimpl
+from minidem.builtin_laws.common import incremental_spring
+from minidem.laws import ContactLaw, HistorySlot, Parameter
+
+
+@numba.njit
+def overrun_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+                  normal_velocity, tangential_increment, tangential_velocity, history):
+    normal_force = constants[0] * normal_overlap
+    # incremental_spring keeps a vector in history[0:3], but the law declares one slot
+    ftx, fty, ftz = incremental_spring(history, constants[1], tangential_increment, constants[2] * normal_force)
+    return normal_force, ftx, fty, ftz
+
+
+def prepare(pair, params):
+    return {"kn": 1e8, "kt": 1e8, "mu": params["friction"]}
+
+
+@hookimpl
+def minidem_register_laws(registry):
+    registry.add(ContactLaw(
+        name="fake_overrun", description="declares 1 history slot, writes 3", constants=("kn", "kt", "mu"),
+        parameters=(Parameter("friction", None, "-", "Coulomb friction", low=0.0, required=True),),
+        history=(HistorySlot("tangential_force_x", "x component of the tangential force (N)"),), prepare=prepare, force=overrun_force))
+'''
+
+
+def test_a_force_writing_past_its_declared_history_is_caught(tmp_path, monkeypatch):
+    """numba does not check bounds: without this check the write would corrupt the next
+    contact's history silently (a plugin author's mistake found in review)."""
+    import importlib
+
+    from minidem import laws
+
+    (tmp_path / "fake_overrun_plugin.py").write_text(OVERRUN_PLUGIN)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    registry = laws.load_registry(extra_plugins=(importlib.import_module("fake_overrun_plugin"),))
+    assert not registry.broken, registry.broken
+    monkeypatch.setattr(laws, "_REGISTRY", registry)
+    [check] = verify.Battery("fake_overrun").history_bounds()
+    assert check.passed is False and "wrote history[1]" in check.value and "declares 1 slot" in check.value
+    [sound] = verify.Battery("hm").history_bounds()
+    assert sound.passed is True
