@@ -572,6 +572,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         errors.add("walls", "expected an array of tables: [[walls]]")
         walls = []
     wall_point, wall_normal, wall_material = [], [], []
+    plane_origin = []  # per plane: ([[walls]] index, what it is, display bounds)
     from minidem import walls as wall_shapes
 
     wall_set = wall_shapes.WallSet.empty()
@@ -583,7 +584,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         _check_kind_keys(table, "walls", kind, where, errors)
         if kind in ("box", "cylinder", "mesh"):
             _shaped_wall(kind, values, where, source, errors, material_of, wall_point, wall_normal,
-                         wall_material, cylinders, meshes, index)
+                         wall_material, cylinders, meshes, index, plane_origin)
             continue
         normal = values.get("normal")
         if normal is None and kind == "plane":
@@ -598,6 +599,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
             wall_point.append(values["point"])
             wall_normal.append(normal)
             wall_material.append(material_of(values.get("material"), f"{where}.material"))
+            plane_origin.append((index, "plane", []))
 
     # particles, and the impact helper
     position, velocity, spin, radius, particle_material = [], [], [], [], []
@@ -690,6 +692,9 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
     )
     wall_set.plane_point, wall_set.plane_normal = scene.wall_point, scene.wall_normal
     wall_set.plane_material = scene.wall_material
+    wall_set.plane_table = np.array([table for table, _, _ in plane_origin], dtype=np.int64)
+    wall_set.plane_label = [label for _, label, _ in plane_origin]
+    wall_set.plane_display_bounds = [bounds for _, _, bounds in plane_origin]
     if cylinders:
         wall_set.cylinder_base = np.array([c[0] for c in cylinders])
         wall_set.cylinder_axis = np.array([c[1] for c in cylinders])
@@ -703,6 +708,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         wall_set.triangle_table = np.concatenate([np.full(len(f), k, dtype=np.int64) for v, f, m, k, _ in meshes])
         wall_set.mesh_files = {k: name for v, f, m, k, name in meshes}
         wall_set.meshes = [(v, f) for v, f, *_ in meshes]
+        wall_set.mesh_table = [k for v, f, m, k, _ in meshes]
     scene.walls = wall_set
     if scene.integrator == "auto":
         # Free flight is exact in closed form for one sphere among planes (constant
@@ -722,7 +728,7 @@ def _required(values, keys, kind, where, errors) -> bool:
 
 
 def _shaped_wall(kind, values, where, source, errors, material_of, wall_point, wall_normal, wall_material,
-                 cylinders, meshes, index) -> None:
+                 cylinders, meshes, index, plane_origin) -> None:
     """Box, cylinder and mesh walls (see minidem/walls.py); planes are handled inline."""
     from minidem import walls as wall_shapes
 
@@ -733,10 +739,13 @@ def _shaped_wall(kind, values, where, source, errors, material_of, wall_point, w
                 errors.add(f"{where}.upper", f"must exceed lower on every axis, got lower "
                            f"{values['lower'].tolist()}, upper {values['upper'].tolist()}")
                 return
-            for point, normal in wall_shapes.box_planes(values["lower"], values["upper"], values["open_top"]):
+            # an open box's sides are drawn up to its upper corner (they are infinite planes)
+            lid = [(values["upper"].copy(), np.array([0.0, 0.0, -1.0]))] if values["open_top"] else []
+            for point, normal, face in wall_shapes.box_planes(values["lower"], values["upper"], values["open_top"]):
                 wall_point.append(point)
                 wall_normal.append(normal)
                 wall_material.append(material)
+                plane_origin.append((index, f"box {face}", lid))
     elif kind == "cylinder":
         if _required(values, ("radius", "length"), "a cylinder", where, errors):
             axis = values["axis"]
@@ -749,6 +758,7 @@ def _shaped_wall(kind, values, where, source, errors, material_of, wall_point, w
                 wall_point.append(values["point"])
                 wall_normal.append(axis)
                 wall_material.append(material)
+                plane_origin.append((index, "cylinder bottom", []))
     elif kind == "mesh":
         if _required(values, ("file",), "a mesh", where, errors):
             path = Path(values["file"])
@@ -843,10 +853,10 @@ def _check_geometry(scene: Scene, max_reported: int = 5) -> None:
     # first max_reported are listed (a whole fill behind a wall is one mistake, not 4000)
     wall_findings: list[tuple[int, str]] = []
     for w in range(scene.wall_point.shape[0]):
-        # (w counts planes: a box contributes several, a cylinder's bottom one; so the
-        # plane is named by its geometry, not by a [[walls]] index)
-        plane = (f"wall {w} (the plane through {scene.wall_point[w].tolist()} with normal "
-                 f"{scene.wall_normal[w].tolist()})")
+        # (w counts planes: a box contributes several, a cylinder's bottom one; the
+        # plane is named by its [[walls]] table and which face of it it is)
+        plane = (scene.walls.plane_name(w) if scene.walls is not None else
+                 f"plane {w} (through {scene.wall_point[w].tolist()}, normal {scene.wall_normal[w].tolist()})")
         overlap = scene.radius - (scene.position - scene.wall_point[w]) @ scene.wall_normal[w]
         for i in np.flatnonzero(overlap >= scene.radius):
             wall_findings.append((i, f"centre is on or behind {plane}; move the particle to the side the normal "

@@ -737,6 +737,22 @@ class Simulation:
             return None
         return scene.output_interval if scene.output_interval is not None else end_time / 50.0
 
+    def _write_flight_frames(self, state: State, count: int, interval: float, on_frame) -> None:
+        """Frames at t = k interval, k < count, of the free flight an analytic-flight run
+        does not step: the ballistic closed form (gravity the only force; the spin, with
+        no torque, unchanged). The state is put back as it was."""
+        scene = self.scene
+        kept = {name: getattr(state, name).copy() for name in ("position", "velocity", "force", "torque")}
+        for k in range(count):
+            t = k * interval
+            state.position[:] = scene.position + scene.velocity * t + 0.5 * scene.gravity * t * t
+            state.velocity[:] = scene.velocity + scene.gravity * t
+            state.force[:] = scene.mass[:, None] * scene.gravity
+            state.torque[:] = 0.0
+            on_frame(t, state)
+        for name, array in kept.items():
+            getattr(state, name)[:] = array
+
     def suggested_time_step(self) -> str:
         """A smaller time step to try after a blow-up, and why."""
         tc = self.reference_contact_time
@@ -787,8 +803,14 @@ class Simulation:
         # 0.45 s of a 7.4 s run, jitter, 4,000 steps, two threads)
         snapshot_steps = max(SNAPSHOT_STEPS, SNAPSHOT_PARTICLE_STEPS // max(1, scene.n_particles))
 
+        # After an analytic flight the steps start at first touch: the flight's frames
+        # (t = 0, interval, ... before the touch) are written from the closed form, and
+        # the stepped frames follow every interval from the touch.
+        flight_frames = (int(math.ceil(start_time / frame_interval - 1e-9))
+                         if frames_on and start_time > 0.0 else 0)
+
         def frame_step(index):
-            return int(round(index * frame_interval / self.dt))
+            return int(round((index - flight_frames) * frame_interval / self.dt))
 
         loop_threads = LoopThreads(threads)
 
@@ -833,8 +855,10 @@ class Simulation:
         if resume_from is None:
             energy.append((start_time, state.kinetic_energy(inertia)))
             if frames_on:
+                if flight_frames:
+                    self._write_flight_frames(state, flight_frames, frame_interval, on_frame)
                 on_frame(start_time, state)
-                loop["frames"], loop["last_frame_step"] = 1, 0
+                loop["frames"], loop["last_frame_step"] = flight_frames + 1, 0
         fingerprint = checkpoint.fingerprint(self) if policy is not None else None
 
         def snapshot(reuse=None):
@@ -1019,13 +1043,20 @@ class Simulation:
         """What the kernel stopped for (status codes of minidem.kernel)."""
         code, particle, partner, kind = (int(x) for x in status)
         when = f"at step {steps} (t = {self.start_time + steps * self.dt:.6g} s)"
-        what = {kernel.PLANE: "plane wall", kernel.CYLINDER: "cylinder wall", kernel.TRIANGLE: "mesh triangle",
-                kernel.PARTICLE: "particle"}.get(kind, "partner")
+        walls = self.scene.walls
+        if kind == kernel.PLANE:
+            what = walls.plane_name(partner)
+        elif kind == kernel.CYLINDER and partner < len(walls.cylinder_table):
+            what = f"walls[{int(walls.cylinder_table[partner])}] (cylinder)"
+        elif kind == kernel.TRIANGLE and partner < len(walls.triangle_table):
+            what = f"triangle {partner} of the mesh walls[{int(walls.triangle_table[partner])}]"
+        else:
+            what = f"{ {kernel.PARTICLE: 'particle', kernel.CYLINDER: 'cylinder'}.get(kind, 'partner')} {partner}"
         if code == kernel.NON_FINITE_FORCE:
             return (f"law '{self.law.name}' ({self.entry.distribution}) returned a non-finite force {when} for "
-                    f"particle {particle} against {what} {partner}")
+                    f"particle {particle} against {what}")
         if code == kernel.TUNNELLED:
-            return f"particle {particle} passed through {what} {partner} {when}: the time step is too large"
+            return f"particle {particle} passed through {what} {when}: the time step is too large"
         return f"run stopped with status {code} {when}"
 
 

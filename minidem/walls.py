@@ -45,6 +45,27 @@ class WallSet:
     cylinder_table: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     triangle_table: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     mesh_files: dict = dataclasses.field(default_factory=dict)  # [[walls]] index -> file path
+    # per plane: its [[walls]] table, what it is ("plane", "box lower-x face", "cylinder
+    # bottom"), and extra half-spaces that bound it for display only (an open box's
+    # sides end at its upper corner; physically they are infinite planes)
+    plane_table: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    plane_label: list = dataclasses.field(default_factory=list)
+    plane_display_bounds: list = dataclasses.field(default_factory=list)
+    mesh_table: list = dataclasses.field(default_factory=list)  # per entry of ``meshes``
+
+    def plane_name(self, w: int) -> str:
+        """The plane wall w as a user wrote it: its [[walls]] table and what it is."""
+        if w < len(self.plane_table):
+            label = "" if self.plane_label[w] == "plane" else f"{self.plane_label[w]}: "
+            return (f"walls[{int(self.plane_table[w])}] ({label}the plane through "
+                    f"{self.plane_point[w].tolist()} with normal {self.plane_normal[w].tolist()})")
+        return f"plane {w}"
+
+    def display_tables(self) -> np.ndarray:
+        """The [[walls]] table of every surface of :func:`display_meshes`, in its order."""
+        return np.concatenate([np.asarray(self.plane_table, dtype=np.int64),
+                               np.asarray(self.cylinder_table, dtype=np.int64),
+                               np.asarray(self.mesh_table, dtype=np.int64)])
 
     @classmethod
     def empty(cls) -> "WallSet":
@@ -53,17 +74,17 @@ class WallSet:
                    np.zeros((0, 3, 3)), zi.copy(), [])
 
 
-def box_planes(lower, upper, open_top: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(point, inward normal) of the faces of an axis-aligned box."""
+def box_planes(lower, upper, open_top: bool = False) -> list[tuple[np.ndarray, np.ndarray, str]]:
+    """(point, inward normal, which face) of the faces of an axis-aligned box."""
     lower, upper = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
     planes = []
     for axis in range(3):
-        for corner, sign in ((lower, 1.0), (upper, -1.0)):
+        for corner, sign, side in ((lower, 1.0, "lower"), (upper, -1.0, "upper")):
             if open_top and axis == 2 and sign < 0:
                 continue
             normal = np.zeros(3)
             normal[axis] = sign
-            planes.append((corner.copy(), normal))
+            planes.append((corner.copy(), normal, f"{side}-{'xyz'[axis]} face"))
     return planes
 
 
@@ -141,7 +162,8 @@ def display_meshes(walls: WallSet, extent_lower, extent_upper) -> list[tuple[np.
         foot = centre - float(np.dot(centre - point, normal)) * normal
         square = plane_to_quad(foot, normal, half)
         polygon = square[0]
-        for other, (other_point, other_normal) in enumerate(planes):
+        bounds = walls.plane_display_bounds[index] if index < len(walls.plane_display_bounds) else []
+        for other, (other_point, other_normal) in enumerate(planes + list(bounds)):
             if other != index:
                 polygon = _clip_polygon(polygon, other_point, other_normal, 1e-12 * half)
         if len(polygon) < 3:  # nothing faces the particles: show the plain square

@@ -120,9 +120,9 @@ CASES = {
     "empty_scene": (re.sub(r"\[impact\](.*\n){5}", "", BASE), [],
                     ["the scene has no particles", "add an [impact] block"]),
     "particle_behind_wall": (SPHERES.format(z0=-0.01, z1=0.1), [],
-                             ["particles[0]", "centre is on or behind wall 0", "flip the wall's normal"]),
+                             ["particles[0]", "centre is on or behind walls[0] (the plane through", "flip the wall's normal"]),
     "particle_inside_wall": (SPHERES.format(z0=0.004, z1=0.1), [],
-                             ["particles[0]", "overlaps wall 0", "by 0.001 m", "move it"]),
+                             ["particles[0]", "overlaps walls[0] (the plane through", "by 0.001 m", "move it"]),
     "overlapping_particles": (SPHERES.format(z0=0.1, z1=0.105), [],
                               ["particles[0]: overlaps particles[1] by 0.005 m", "at least the sum of their radii"]),
     # issue 4 of the input review: keys another wall type / fill kind uses are refused, not ignored
@@ -152,7 +152,7 @@ CASES = {
     # issue 5: a whole fill behind a wall is reported as 5 particles and a count, not 20 lines
     "fill_behind_a_plane_is_capped": (
         SPHERES.format(z0=0.1, z1=0.2) + FILL.format(kind="lattice", lower_z=-0.05, upper_z=-0.047, extra="count = 20"), [],
-        ["fill[0] (particle 2, sphere 0 of the fill): centre is on or behind wall 0",
+        ["fill[0] (particle 2, sphere 0 of the fill): centre is on or behind walls[0] (the plane through [0.0, 0.0, 0.0]",
          "... and 15 more particle-wall overlaps"]),
     "set_without_equals": (None, ["--set", "impact.angle_deg"],
                            ["--set 'impact.angle_deg'", "expected KEY=VALUE", "--set impact.angle_deg=30"]),

@@ -578,3 +578,41 @@ def test_argument_validation(tmp_path):
     with pytest.raises(RuntimeError, match="closed"):
         w.write_walls([])
     assert os.listdir(tmp_path / "new" / "dir") == []
+
+
+def test_an_analytic_flight_run_has_the_flight_frames(tmp_path):
+    """One sphere dropped 0.1 m onto a floor: the default integrator skips the flight (the
+    steps start at first touch), but ParaView must still see it fall: frames at t = 0 and
+    every output.interval before the touch, placed by the ballistic closed form, then the
+    touch and the stepped frames every interval from it (independent review finding)."""
+    from minidem import scenario, simulation
+    from minidem.output.vtk import SimulationFrames
+
+    scene = scenario.build_scene({
+        "materials": {"glass": {"youngs_modulus": 70e9, "poisson_ratio": 0.3, "density": 2650.0}},
+        "contact": {"law": "hm", "friction": 0.3, "restitution": 0.5},
+        "walls": [{"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0], "material": "glass"}],
+        "particles": [{"position": [0.0, 0.0, 0.11], "radius": 0.01, "material": "glass"}],
+        "run": {"gravity": [0.0, 0.0, -9.81], "stop": "time", "end_time": 0.2},
+        "output": {"interval": 0.02, "directory": str(tmp_path)},
+    }, "drop.toml")
+    sim = simulation.Simulation(scene)
+    assert scene.integrator == "analytic_flight" and sim.start_time > 0.1  # falls 0.1 m: 0.1428 s
+    frames = SimulationFrames(sim, tmp_path)
+    sim.run(on_frame=frames)
+    frames.close()
+    entries = parse_pvd(tmp_path / "particles.pvd")
+    times = [float(t) for t, _ in entries]
+    flight = [t for t in times if t < sim.start_time]
+    assert flight == pytest.approx([0.02 * k for k in range(8)], abs=1e-15)  # 0 ... 0.14 < 0.1428
+    assert times[len(flight)] == pytest.approx(sim.start_time, abs=1e-15)  # the touch
+    # stepped frames every interval from the touch, and the end of the run
+    stepped = np.diff(times[len(flight):-1])
+    assert stepped == pytest.approx(np.full(stepped.size, 0.02), abs=sim.dt)
+    assert times[-1] == pytest.approx(0.2, abs=sim.dt)
+    for t, name in entries[:len(flight)]:
+        grid = vtk_read(str(tmp_path / name))
+        z = vtk_to_numpy(grid.GetPoints().GetData())[0, 2]
+        assert z == pytest.approx(0.11 - 0.5 * 9.81 * t * t, abs=1e-15)  # free fall
+        velocity = vtk_to_numpy(grid.GetPointData().GetArray("velocity"))[0]
+        assert velocity == pytest.approx([0.0, 0.0, -9.81 * t], abs=1e-15)

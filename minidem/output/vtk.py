@@ -331,16 +331,21 @@ def write_surface_vtu(
     binary: bool = True,
     encoding: str = "raw",
     fsync: bool = True,
+    tables: Sequence[int] | None = None,
 ) -> str:
     """Write triangle/quad surface meshes into one ``.vtu`` file (atomically).
 
     ``meshes`` is a sequence of ``(vertices (K, 3), faces (F, 3) or (F, 4) int)``;
     faces index that mesh's own vertices. The cell array ``wall_id`` records which
     mesh (position in ``meshes``) each face came from, so ParaView can colour or
-    threshold individual walls.
+    threshold individual walls; ``tables`` (one int per mesh), written as the cell
+    array ``wall_table``, which ``[[walls]]`` table of the scenario it belongs to (a
+    box is five or six meshes of one table).
     """
+    if tables is not None and len(tables) != len(meshes):
+        raise ValueError(f"tables: one per mesh, got {len(tables)} for {len(meshes)} meshes")
     mode = _mode(binary, encoding)
-    pts, conn, offs, types, wall_id = [], [], [], [], []
+    pts, conn, offs, types, wall_id, wall_table = [], [], [], [], [], []
     n_vert = 0
     n_conn = 0
     for i, mesh in enumerate(meshes):
@@ -364,6 +369,8 @@ def write_surface_vtu(
         offs.append(n_conn + k * np.arange(1, f.shape[0] + 1, dtype=_I64))
         types.append(np.full(f.shape[0], _VTK_TRIANGLE if k == 3 else _VTK_QUAD, dtype=_U8))
         wall_id.append(np.full(f.shape[0], i, dtype=_I64))
+        if tables is not None:
+            wall_table.append(np.full(f.shape[0], int(tables[i]), dtype=_I64))
         n_vert += v.shape[0]
         n_conn += f.size
 
@@ -377,7 +384,8 @@ def write_surface_vtu(
         cat(offs, _I64),
         cat(types, _U8),
         [],
-        [_DataArray("wall_id", cat(wall_id, _I64), 1)],
+        [_DataArray("wall_id", cat(wall_id, _I64), 1)]
+        + ([_DataArray("wall_table", cat(wall_table, _I64), 1)] if tables is not None else []),
         mode,
     )
     _atomic_write(path, chunks, fsync)
@@ -689,7 +697,7 @@ class VTKSeriesWriter:
         return _unstructured_grid_chunks(pos, connectivity, offsets, types, [], cell_arrays,
                                          self._mode, time_s)
 
-    def write_walls(self, meshes: Sequence[tuple], name: str = "walls") -> str:
+    def write_walls(self, meshes: Sequence[tuple], name: str = "walls", tables: Sequence[int] | None = None) -> str:
         """Write wall surfaces once, as ``{directory}/{name}.vtu``; returns the path.
 
         ``meshes``: list of ``(vertices (K, 3) [m], faces (F, 3) or (F, 4) int)``; use
@@ -701,7 +709,7 @@ class VTKSeriesWriter:
         if not name or os.sep in name or (os.altsep and os.altsep in name):
             raise ValueError(f"name must be a plain file-name stem; got {name!r}")
         path = os.path.join(self.directory, f"{name}.vtu")
-        return write_surface_vtu(path, meshes, self.binary, self.encoding, self.fsync)
+        return write_surface_vtu(path, meshes, self.binary, self.encoding, self.fsync, tables)
 
     plane_to_quad = staticmethod(plane_to_quad)
 
@@ -827,7 +835,7 @@ class SimulationFrames:
         lower = (scene.position - scene.radius[:, None]).min(axis=0)
         upper = (scene.position + scene.radius[:, None]).max(axis=0)
         meshes = display_meshes(scene.walls, lower, upper)
-        self.walls_path = self.writer.write_walls(meshes) if meshes else None
+        self.walls_path = self.writer.write_walls(meshes, tables=scene.walls.display_tables()) if meshes else None
         self.frames = 0
 
     def __call__(self, time_s, state) -> None:
