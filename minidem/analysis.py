@@ -121,6 +121,10 @@ def summary(result: RunResult) -> dict:
     else:
         out.update({"angle_deg": None, "speed": None})
         measures = {k: None for k in ("en", "et", "x", "y1", "y2")}
+        if scene.n_particles == 2 and result.first_contact_time >= 0 and result.contacts == 0:
+            # a two-sphere collision: the sphere-sphere counterparts of en and et
+            pair = pair_rebound(result)
+            measures.update({k: v for k, v in pair.items() if math.isfinite(v)})
     out.update({k: measures[k] for k in ("en", "et", "x", "y1", "y2")})
     duration = (result.last_separation_time - result.first_contact_time
                 if result.first_contact_time >= 0 and result.last_separation_time >= 0 else None)

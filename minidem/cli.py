@@ -27,20 +27,37 @@ def _format_value(value) -> str:
 
 def print_summary(summary: dict, out=None) -> None:
     out = sys.stdout if out is None else out
-    rows = [
-        ("law", summary["law"], ""),
-        ("impact angle", summary["angle_deg"], "deg"),
-        ("impact speed", summary["speed"], "m/s"),
-        ("en", summary["en"], "normal restitution"),
-        ("et", summary["et"], "tangential restitution"),
-        ("x", summary["x"], "2 tan(theta)/(1+en)"),
-        ("y1", summary["y1"], "normalised rebound surface velocity"),
-        ("y2", summary["y2"], "normalised rebound spin"),
-        ("contact duration", summary["contact_duration_s"], "s"),
-        ("max overlap", summary["max_overlap_m"], "m"),
-        ("peak normal force", summary["peak_normal_force_n"], "N"),
-        ("peak tangential force", summary["peak_tangential_force_n"], "N"),
-        ("energy ratio", summary["energy_ratio"], "final/initial kinetic+rotational"),
+    if summary["angle_deg"] is not None:  # the paper's impact: its rebound measures
+        rows = [
+            ("law", summary["law"], ""),
+            ("impact angle", summary["angle_deg"], "deg"),
+            ("impact speed", summary["speed"], "m/s"),
+            ("en", summary["en"], "normal restitution"),
+            ("et", summary["et"], "tangential restitution"),
+            ("x", summary["x"], "2 tan(theta)/(1+en)"),
+            ("y1", summary["y1"], "normalised rebound surface velocity"),
+            ("y2", summary["y2"], "normalised rebound spin"),
+            ("contact duration", summary["contact_duration_s"], "s"),
+            ("max overlap", summary["max_overlap_m"], "m"),
+            ("peak normal force", summary["peak_normal_force_n"], "N"),
+            ("peak tangential force", summary["peak_tangential_force_n"], "N"),
+            ("energy ratio", summary["energy_ratio"], "final/initial kinetic+rotational"),
+        ]
+    else:  # a scene: what a DEM user checks first
+        rows = [
+            ("law", summary["law"], ""),
+            ("particles", summary["particles"], ""),
+            ("contacts at end", summary["contacts_at_end"], "touching pairs and particle-wall contacts"),
+            ("kinetic energy", summary["kinetic_energy_j"], "J, at the end (translational + rotational)"),
+            ("peak kinetic energy", summary["peak_kinetic_energy_j"], "J, largest sampled"),
+            ("energy ratio", summary["energy_ratio"], "final/initial kinetic+rotational"),
+        ]
+        if summary["en"] is not None:  # two spheres: their collision's measures
+            rows[2:2] = [("en", summary["en"], "normal restitution of the pair"),
+                         ("et", summary["et"], "tangential restitution of the pair")]
+        rows += [("max overlap", summary["max_overlap_m"], "m"),
+                 ("neighbour builds", summary["neighbour_builds"], "Verlet-list builds")]
+    rows += [
         ("steps", summary["steps"], f"dt = {_format_value(summary['dt_s'])} s"),
         ("wall time", summary["wall_time_s"], "s"),
     ]
