@@ -104,6 +104,25 @@ def _impact_energy_warning(result: RunResult, ratio: float, duration) -> str | N
     return energy_creation_warning(result.law.name, ratio, result.dt, duration)
 
 
+def energy_budget_warning(result: RunResult) -> str | None:
+    """A warning if a scene's kinetic energy ever exceeded what it could have: contacts
+    are passive, so KE(t) <= KE(0) + the work gravity has done. The samples and that
+    work are taken at the same steps (the run's checks). 1e-3 of the budget allows for
+    integration error; the blow-up guard stops a run only at 1000 times the budget, so
+    between the two a run (an unstable time step the user allowed) would end silently."""
+    scene = result.scene
+    if scene.impact is not None or result.energy is None or len(result.energy) == 0:
+        return None  # an impact's own check: energy_creation_warning
+    initial, peak = float(result.energy[0, 1]), float(result.energy[:, 1].max())
+    budget = initial + max(result.gravity_work_max, 0.0)
+    if peak <= budget * (1.0 + 1e-3):
+        return None
+    times = (f"{peak / budget:.3g} times" if budget > 0.0 else "more than")
+    return (f"the kinetic energy reached {peak:.3g} J, {times} what the scene can supply ({budget:.3g} J: the "
+            "initial kinetic energy plus the work of gravity; contacts cannot add energy): the time step is too "
+            "large for the contacts, or the law creates energy (docs/time-step.md)")
+
+
 SUMMARY_KEYS = ("law", "angle_deg", "speed", "en", "et", "x", "y1", "y2", "contact_duration_s", "max_overlap_m",
                 "energy_ratio", "steps", "dt_s", "wall_time_s", "warnings")
 
@@ -129,7 +148,8 @@ def summary(result: RunResult) -> dict:
     duration = (result.last_separation_time - result.first_contact_time
                 if result.first_contact_time >= 0 and result.last_separation_time >= 0 else None)
     ratio = energy_ratio(result)
-    warnings = [w for w in (incomplete_contact(result), _impact_energy_warning(result, ratio, duration)) if w]
+    warnings = [w for w in (incomplete_contact(result), _impact_energy_warning(result, ratio, duration),
+                            energy_budget_warning(result)) if w]
     out.update({
         "contact_duration_s": duration,
         "max_overlap_m": result.max_overlap if result.contact_statistics else None,

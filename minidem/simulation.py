@@ -303,6 +303,8 @@ class RunResult:
     # False when the parallel loop ran: it records first touch (to the step) but not the
     # peaks and the separation, which would need a race between threads
     contact_statistics: bool = True
+    # the largest work gravity did on the particles since t = 0 (J), at the run's checks
+    gravity_work_max: float = 0.0
 
 
 # State arrays a checkpoint holds: particle arrays, then the contact arrays of each
@@ -1036,7 +1038,7 @@ class Simulation:
             trace=np.concatenate(trace_chunks) if trace_chunks else None, force=state.force, torque=state.torque,
             contacts=state.count_contacts(), neighbour_builds=state.builds, threads=loop_threads.most_used(),
             thread_steps=dict(loop_threads.steps),
-            energy=np.array(energy), contact_statistics=not self.parallel,
+            energy=np.array(energy), contact_statistics=not self.parallel, gravity_work_max=loop["gravity_work_max"],
         )
 
     def _fault_message(self, status, steps) -> str:

@@ -17,6 +17,7 @@ Only symplectic Euler adds one variant (ls).
 
 import copy
 import math
+import re
 import warnings
 
 import numpy as np
@@ -437,3 +438,60 @@ def test_a_sphere_released_far_from_the_wall_rebounds_as_one_released_touching_i
     # velocity Verlet steps the flight, and still reaches the wall within the default end
     stepped = impact_summary("hmd", 30.0, impact__gap=0.1, run__integrator="velocity_verlet")
     assert stepped["steps"] > 100 * touching["steps"] and stepped["et"] == pytest.approx(touching["et"], abs=1e-3)
+
+
+ENERGY_GAIN_SCENE = """
+[materials.g]
+youngs_modulus = 1e7
+poisson_ratio = 0.3
+density = 2500.0
+
+[contact]
+law = "hm"
+friction = 0.3
+restitution = 0.5
+
+[[walls]]
+type = "box"
+lower = [0.0, 0.0, 0.0]
+upper = [0.05, 0.05, 0.1]
+open_top = true
+material = "g"
+
+[[fill]]
+kind = "lattice"
+material = "g"
+radius = 1e-3
+spacing = 2.5e-3
+lower = [0.0, 0.0, 0.0]
+upper = [0.05, 0.05, 0.05]
+count = 50
+
+[run]
+dt = 5e-4
+allow_unstable_dt = true
+stop = "time"
+end_time = 0.2
+gravity = [0.0, 0.0, -9.81]
+
+[output]
+vtk = false
+"""
+
+
+def test_a_scene_that_gains_energy_is_not_silent(tmp_path):
+    """50 beads on a floor at 25 times the stable step (allowed by the user): the
+    contacts pump energy in, about 450 times what gravity supplied, yet below the
+    blow-up guard's factor 1000, so the run ends normally. Contacts are passive
+    (KE <= KE(0) + work of gravity): summary.json must carry a warning (independent
+    review). The same scene at its automatic step carries none."""
+    path = tmp_path / "gain.toml"
+    path.write_text(ENERGY_GAIN_SCENE)
+    with pytest.warns(UserWarning, match="times the stability limit"):  # allowed, with a warning
+        hot = analysis.summary(simulation.Simulation(scenario.load_scene(path, [], "-")).run())
+    [warning] = hot["warnings"]
+    assert "what the scene can supply" in warning and "time step is too large" in warning
+    assert float(re.search(r"J, ([0-9.e+]+) times what", warning).group(1)) > 10.0
+    calm = analysis.summary(simulation.Simulation(scenario.load_scene(
+        path, ['run.dt="auto"', "run.end_time=0.05"], "-")).run())
+    assert calm["warnings"] == []
