@@ -3,7 +3,9 @@ packing in a box region, or a file (CSV or VTK)."""
 
 from __future__ import annotations
 
+import csv
 import random
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -141,13 +143,23 @@ def read_particles(path: str | Path) -> dict[str, np.ndarray]:
     path = Path(path)
     if not path.exists():
         raise ValueError(f"no such particle file '{path}'")
+    if path.is_dir():
+        raise ValueError(f"particle file '{path}' is a directory; give a CSV or point file (.vtu, .vtk, ...)")
     if path.suffix.lower() == ".csv":
         try:
-            table = np.genfromtxt(path, delimiter=",", names=True, dtype=np.float64, encoding="utf-8")
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # "Empty input file": refused below, by name
+                table = np.genfromtxt(path, delimiter=",", names=True, dtype=np.float64, encoding="utf-8")
         except ValueError as exc:
             raise ValueError(f"cannot read particle CSV '{path}': {exc}") from None
         table = np.atleast_1d(table)
         names = table.dtype.names or ()
+        if names and table.size == 0:
+            raise ValueError(f"particle CSV '{path}' has a header ({','.join(names)}) but no data rows; "
+                             "give one row per particle")
+        # the cells as written: genfromtxt reads text that is not a number as NaN
+        with open(path, encoding="utf-8", newline="") as handle:
+            cells = [row for row in csv.reader(handle) if row][1:]
         missing = [c for c in ("x", "y", "z", "radius") if c not in names]
         if missing:
             raise ValueError(f"particle CSV '{path}' lacks column(s) {missing}; its header has {list(names)}")
@@ -165,7 +177,19 @@ def read_particles(path: str | Path) -> dict[str, np.ndarray]:
                   "velocity": ("column 'vx'", "column 'vy'", "column 'vz'"),
                   "angular_velocity": ("column 'wx'", "column 'wy'", "column 'wz'")}
         where = lambda row: f"data row {row + 1} (counting from 1 after the header)"  # noqa: E731
-        unit, note = "row", " (an empty cell reads as NaN)"
+        column_of = {"position": ("x", "y", "z"), "radius": ("radius",), "velocity": ("vx", "vy", "vz"),
+                     "angular_velocity": ("wx", "wy", "wz")}
+
+        def written(name, row, column):
+            """The cell's text when it is not a number (genfromtxt gave NaN), else None."""
+            k = names.index(column_of[name][column])
+            text = cells[row][k].strip() if row < len(cells) and k < len(cells[row]) else ""
+            try:
+                float(text)
+            except ValueError:
+                return "empty" if not text else f"{text!r}, not a number"
+            return None
+        unit = "row"
 
         out = {"position": columns(("x", "y", "z")), "radius": np.asarray(table["radius"], dtype=np.float64),
                "velocity": columns(("vx", "vy", "vz")), "angular_velocity": columns(("wx", "wy", "wz"))}
@@ -190,7 +214,8 @@ def read_particles(path: str | Path) -> dict[str, np.ndarray]:
                   "velocity": tuple(f"point array 'velocity' component {c}" for c in "xyz"),
                   "angular_velocity": tuple(f"point array 'angular_velocity' component {c}" for c in "xyz")}
         where = lambda row: f"point {row} (counting from 0)"  # noqa: E731
-        unit, note = "point", ""
+        written = lambda name, row, column: None  # noqa: E731
+        unit = "point"
     for name in ("position", "radius", "velocity", "angular_velocity"):
         values = out[name].reshape(len(out[name]), -1)
         bad = ~np.isfinite(values)
@@ -199,8 +224,9 @@ def read_particles(path: str | Path) -> dict[str, np.ndarray]:
         if np.any(bad):
             row, column = (int(k) for k in np.argwhere(bad)[0])
             count = int(np.count_nonzero(np.any(bad, axis=1)))
-            expected = "a finite number > 0 (m)" if name == "radius" else "a finite number" + note
+            expected = "a finite number > 0 (m)" if name == "radius" else "a finite number"
+            text = written(name, row, column) if np.isnan(values[row, column]) else None
             raise ValueError(f"particle file '{path}': {labels[name][column]} ({name}) of {where(row)} is "
-                             f"{float(values[row, column]):g}, expected {expected}"
+                             f"{text or format(float(values[row, column]), 'g')}, expected {expected}"
                              + (f"; {count - 1} more {unit}(s) like it" if count > 1 else ""))
     return out
