@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import difflib
+import json
 import math
 import tomllib
 import warnings
@@ -369,6 +370,10 @@ class _Errors:
     def add(self, where: str, message: str) -> None:
         self.messages.append(f"{where}: {message}" if where else message)
 
+    def has(self, where: str) -> bool:
+        """Whether a message about the key ``where`` was already added."""
+        return any(m.startswith(f"{where}: ") for m in self.messages)
+
     def raise_if_any(self) -> None:
         if self.messages:
             lines = "\n".join(f"  - {m}" for m in self.messages)
@@ -650,7 +655,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         errors.add("", "the scene has no particles: add an [impact] block, [[particles]] or [[fill]]")
 
     run = _check_table(data.get("run", {}), SCHEMA["run"][1], "run", errors)
-    if run.get("stop") == "time" and run.get("end_time") is None:
+    if run.get("stop") == "time" and run.get("end_time") is None and not errors.has("run.end_time"):
         errors.add("run.end_time", 'required when run.stop = "time"')
     output = _check_table(data.get("output", {}), SCHEMA["output"][1], "output", errors)
     errors.raise_if_any()
@@ -723,7 +728,9 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
 def _required(values, keys, kind, where, errors) -> bool:
     missing = [k for k in keys if values.get(k) is None]
     for k in missing:
-        errors.add(f"{where}.{k}", f"missing required key for {kind}")
+        # a value of the wrong type is dropped (None) after its own message: it is not also "missing"
+        if not errors.has(f"{where}.{k}"):
+            errors.add(f"{where}.{k}", f"missing required key for {kind}")
     return not missing
 
 
@@ -898,6 +905,18 @@ def _check_geometry(scene: Scene, max_reported: int = 5) -> None:
 # ---------------------------------------------------------------------------------
 # reference documentation, generated from SCHEMA
 # ---------------------------------------------------------------------------------
+def _toml(value) -> str:
+    """A default as it would be written in a scenario file (the reference is read by people
+    writing TOML: false, [0.0, 0.0, 1.0], "auto", not Python's False, (0.0, 0.0, 1.0), auto)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return json.dumps(value)  # a TOML basic string: the same quoting and escapes
+    if isinstance(value, (tuple, list, np.ndarray)):
+        return "[" + ", ".join(_toml(v) for v in value) + "]"
+    return repr(value)
+
+
 def reference_markdown() -> str:
     lines = ["# Scenario file reference", "",
              "Generated from `minidem/scenario.py` (`minidem docs --write docs/scenario-reference.md`); every key, unit, default "
@@ -912,7 +931,7 @@ def reference_markdown() -> str:
             lines.append("")
         lines += ["| key | type | unit | default | bounds | meaning |", "|---|---|---|---|---|---|"]
         for key in keys:
-            default = "required" if key.default is REQUIRED else ("-" if key.default is None else f"`{key.default}`")
+            default = "required" if key.default is REQUIRED else ("-" if key.default is None else f"`{_toml(key.default)}`")
             kind = key.kind.replace("float_or_auto", 'float or "auto"').replace("vec3", "[x, y, z]")
             lines.append(f"| `{key.name}` | {kind} | {key.unit or ''} | {default} | {key.bounds_text().replace('|', 'or')} "
                          f"| {key.description} |")

@@ -94,6 +94,8 @@ def read_mesh(path: str | Path, scale: float = 1.0, offset=(0.0, 0.0, 0.0)) -> t
     meshio cannot read or one without surface cells."""
     import meshio
 
+    if Path(path).is_dir():
+        raise ValueError(f"mesh file '{path}' is a directory; give a surface mesh file (STL, OBJ, PLY, VTK, ...)")
     if not Path(path).is_file():
         raise ValueError(f"no such mesh file '{path}'")
     try:

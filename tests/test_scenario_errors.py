@@ -248,7 +248,7 @@ FILE_FILL = SPHERES.format(z0=0.1, z1=0.2) + '\n[[fill]]\nkind = "file"\nmateria
 @pytest.mark.parametrize("csv, fragments", [
     # an empty cell reads as NaN: it was accepted and the run blamed the contact law
     ("x,y,z,radius,vx,vy,vz\n0.05,0.05,0.05,0.001,0,0,0\n0.02,0.02,0.02,0.001,,0,0\n",
-     ["column 'vx' (velocity) of data row 2", "is nan", "expected a finite number"]),
+     ["column 'vx' (velocity) of data row 2", "is empty, expected a finite number"]),
     ("x,y,z,radius,wx,wy,wz\n0.05,0.05,0.05,0.001,0,inf,0\n",
      ["column 'wy' (angular_velocity) of data row 1", "is inf"]),
     ("x,y,z,radius\n0.05,0.05,0.05,0.001\n0.02,0.02,0.02,-0.001\n",
@@ -263,6 +263,51 @@ def test_file_fill_values_must_be_finite(csv, fragments, tmp_path, capsys):
     for fragment in ["scene.toml: invalid scenario", "fill[0]: particle ", "beads.csv", *fragments]:
         assert fragment in message, f"{fragment!r} not in {message!r}"
     assert not (tmp_path / "out" / "summary.json").exists()
+
+
+@pytest.mark.parametrize("csv, fragments", [
+    # the input review: only a header gave "cannot reshape array of size 0 into shape (0,newaxis)"
+    ("x,y,z,radius\n", ["particle CSV", "has a header (x,y,z,radius) but no data rows"]),
+    # text that is not a number read as NaN and was reported as "is nan"
+    ("x,y,z,radius\n0.05,0.05,0.05,0.001\n0.02,0.02,0.02,abc\n",
+     ["column 'radius' (radius) of data row 2 (counting from 1 after the header) is 'abc', not a number, "
+      "expected a finite number > 0 (m)"]),
+])
+def test_file_fill_csv_without_rows_or_with_text_says_so(csv, fragments, tmp_path, capsys):
+    (tmp_path / "beads.csv").write_text(csv)
+    path = tmp_path / "scene.toml"
+    path.write_text(FILE_FILL.format(file="beads.csv"))
+    message = refused(capsys, "run", str(path), "--out", str(tmp_path / "out"))
+    for fragment in ["scene.toml: invalid scenario", "fill[0]: particle ", "beads.csv", *fragments]:
+        assert fragment in message, f"{fragment!r} not in {message!r}"
+    assert "reshape" not in message and "is nan" not in message
+
+
+def test_a_directory_given_as_fill_or_mesh_file_is_named_a_directory(tmp_path, capsys):
+    # the review: "no such mesh file 'adir'" and "Could not deduce file format" for a directory
+    (tmp_path / "adir").mkdir()
+    path = tmp_path / "scene.toml"
+    path.write_text(FILE_FILL.format(file="adir"))
+    message = refused(capsys, "run", str(path))
+    assert f"fill[0]: particle file '{tmp_path / 'adir'}' is a directory; give a CSV or point file" in message
+    path.write_text(SPHERES.format(z0=0.1, z1=0.2) + '\n[[walls]]\ntype = "mesh"\nfile = "adir"\nmaterial = "glass"\n')
+    message = refused(capsys, "run", str(path))
+    assert f"walls[1].file: mesh file '{tmp_path / 'adir'}' is a directory; give a surface mesh file" in message
+
+
+@pytest.mark.parametrize("text, error, not_also", [
+    # the review: a value of the wrong type was reported, then reported again as missing
+    (SPHERES.format(z0=0.1, z1=0.2) + '\n[[walls]]\ntype = "cylinder"\nradius = "0.05"\nlength = 0.1\n'
+     'material = "glass"\n', "walls[1].radius: expected a number (m), got '0.05'",
+     "walls[1].radius: missing required key"),
+    (edit('dt = "auto" ', 'dt = "auto"\nstop = "time"\nend_time = "long"'),
+     "run.end_time: expected a number (s), got 'long'", "run.end_time: required when"),
+])
+def test_a_wrong_type_is_not_also_reported_missing(text, error, not_also, tmp_path, capsys):
+    path = tmp_path / "scene.toml"
+    path.write_text(text)
+    message = refused(capsys, "run", str(path))
+    assert error in message and not_also not in message, message
 
 
 def test_vtk_file_fill_with_a_nan_velocity_names_the_array_and_point(tmp_path, capsys):
@@ -324,3 +369,16 @@ def test_unusable_output_directory_from_the_scenario_or_a_sweep_is_named(tmp_pat
     message = refused(capsys, "run", str(path), "--out", "afile")
     assert f"{path}: --out 'afile': cannot use it as the output directory" in message
     assert (tmp_path / "afile").read_text() == ""
+
+
+def test_scenario_reference_prints_defaults_as_toml():
+    # the review: defaults were printed in Python form (False, (0.0, 0.0, 0.0), auto), which
+    # cannot be pasted into a scenario file; every default must parse as the TOML value it is
+    import tomllib
+
+    text = scenario.reference_markdown()
+    assert "| `open_top` | bool |  | `false` |" in text and "| `axis` | [x, y, z] | - | `[0.0, 0.0, 1.0]` |" in text
+    defaults = re.findall(r"^\| `(\w+)` \| [^|]* \| [^|]* \| `([^`]*)` \|", text, flags=re.M)
+    assert len(defaults) > 10
+    for name, default in defaults:
+        assert tomllib.loads(f"x = {default}")["x"] is not None, (name, default)

@@ -357,15 +357,47 @@ def test_random_fill_places_the_count_without_overlap_inside_the_region():
 
 
 def test_random_fill_that_cannot_fit_is_a_clear_error(tmp_path):
-    # 30 spheres of radius 1 mm in a 4 mm cube: their centres must lie in its central
-    # 2 mm cube, which holds at most 8 spheres 2 mm apart (its corners)
+    # 9 spheres of radius 1 mm in a 4 mm cube: their centres must lie in its central
+    # 2 mm cube, which holds at most 8 spheres 2 mm apart (its corners). 9 fill 0.59 of
+    # the cube, under the narrow-region bound (0.64), so this is refused by the run of
+    # failed attempts, not up front
     data = {"materials": {"glass": GLASS}, "contact": {"law": "hm", "friction": 0.3},
             "walls": [{"type": "box", "lower": [0, 0, 0], "upper": [0.004, 0.004, 0.004], "material": "glass"}],
             "fill": [{"kind": "random", "material": "glass", "radius": 1e-3, "lower": [0, 0, 0],
-                      "upper": [0.004, 0.004, 0.004], "count": 30}],
+                      "upper": [0.004, 0.004, 0.004], "count": 9}],
             "run": {"stop": "time", "end_time": 0.1}}
-    with pytest.raises(scenario.ScenarioError, match=r"fill\[0\]: placed only [1-8] of 30 non-overlapping spheres"):
+    with pytest.raises(scenario.ScenarioError, match=r"fill\[0\]: placed only [1-8] of 9 non-overlapping spheres.*"
+                       r"\(20000 in a row failed"):
         scenario.build_scene(data, "scene.toml")
+
+
+def test_random_fill_beyond_saturation_is_refused_before_any_attempt():
+    # the review's case: 2500 spheres of radius 1 mm in 30 x 30 x 20 mm (was refused after
+    # 74 s and 2.5 million attempts). Their volume, 2500 x 4/3 pi (1 mm)^3 = 10,472 mm^3,
+    # is 0.582 of the region's 18,000 mm^3, above random sequential addition's 0.383
+    # (Zhang & Torquato 2013). The generator is told to give up after one failure, so
+    # reaching the attempts at all would show as a different message
+    with pytest.raises(ValueError) as error:
+        particles.random_packing([0, 0, 0], [0.03, 0.03, 0.02], 2500, 1e-3, 1e-3, max_consecutive_failures=1)
+    assert str(error.value) == ("count = 2500 spheres of radius 0.001 m would fill 0.582 of the region's volume; "
+                                "random sequential addition of equal spheres jams below 0.383: enlarge the region "
+                                "or reduce count well below 1645 (the count at that limit), or fill loosely and "
+                                "let the particles settle")
+    with pytest.raises(ValueError, match=r"count = 100000 spheres of radii 0.001..0.0012 m would fill 31.230 .* "
+                       r"unequal spheres jams below 0.64"):
+        particles.random_packing([0, 0, 0], [0.03, 0.03, 0.02], 100000, 1e-3, 1.2e-3, max_consecutive_failures=1)
+
+
+def test_random_fill_at_a_quarter_solid_still_succeeds():
+    # 201 spheres of radius 1 mm in a 15 mm cube: 201 x 4.18879 / 3375 = 0.249 solid,
+    # below saturation (0.383) but dense enough that attempts fail often near the end
+    lower, upper = np.zeros(3), np.full(3, 0.015)
+    position, radius = particles.random_packing(lower, upper, 201, 1e-3, 1e-3, seed=7)
+    assert len(position) == 201
+    assert np.all(position - 1e-3 >= lower) and np.all(position + 1e-3 <= upper)
+    gap = np.linalg.norm(position[:, None] - position[None], axis=2) - 2e-3
+    np.fill_diagonal(gap, np.inf)
+    assert gap.min() >= 0.0
 
 
 def test_lattice_fill_counts_and_refuses_too_many():
