@@ -176,7 +176,7 @@ def test_failed_case_is_reported_in_its_row_and_the_sweep_goes_on(tmp_path):
     assert code == 1  # some cases failed
     rows = sweep.load_rows(tmp_path / "out" / "sweep.csv")
     assert [r["status"] for r in rows] == ["ok", "failed", "ok"]
-    assert "passed through plane wall" in rows[1]["error"] and rows[1]["law"] == "hmd"
+    assert "passed through walls[0] (the plane through" in rows[1]["error"] and rows[1]["law"] == "hmd"
     assert rows[1]["et"] is None  # no number where there is no result, never a NaN
     for row in (rows[0], rows[2]):
         assert row["error"] is None and 0.0 < row["et"] < 1.0 and row["energy_ratio"] <= 1.0 + 1e-9
