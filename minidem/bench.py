@@ -29,7 +29,6 @@ import math
 import os
 import platform
 import resource
-import shutil
 import statistics
 import subprocess
 import sys
@@ -37,7 +36,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from minidem import integrate, reference
+from minidem import reference
 
 MEASURES = ("y1", "y2", "et")
 SCENARIO = Path(__file__).resolve().parent.parent / "scenarios" / "oblique.toml"

@@ -510,27 +510,6 @@ class Simulation:
         fastest = float(speeds.max(initial=0.0)) * (2.0 if scene.n_particles > 1 else 1.0)
         return max(fastest, fall, 1e-3)
 
-    def contact_time(self) -> float:
-        """Shortest normal-impact duration among the contact kinds the scene can have."""
-        scene, walls = self.scene, self.scene.walls
-        speed = self.characteristic_speed()
-        times = []
-        wall_materials = set(walls.plane_material.tolist()) | set(walls.cylinder_material.tolist()) \
-            | set(walls.triangle_material.tolist())
-        for material in np.unique(scene.particle_material):
-            members = scene.particle_material == material
-            smallest = np.argmin(np.where(members, scene.radius, np.inf))
-            r, m = float(scene.radius[smallest]), float(scene.mass[smallest])
-            for other in wall_materials:
-                key = (min(material, other), max(material, other))
-                times.append(laws.law_contact_time(self.law, self.pairs_[key], self.constants_by_pair[key], r, m, speed))
-            if scene.n_particles > 1:
-                for other in np.unique(scene.particle_material):
-                    key = (min(material, other), max(material, other))
-                    times.append(laws.law_contact_time(self.law, self.pairs_[key], self.constants_by_pair[key],
-                                                       r / 2, m / 2, speed))
-        return min(times) if times else math.inf
-
     def contact_kinds(self):
         """(pair, named constants, effective radius, effective mass) of every kind of contact
         the scene can have: the smallest particle of each material against each wall

@@ -3,7 +3,6 @@
 import math
 
 import numba
-import numpy as np
 
 from minidem.laws import Parameter
 
