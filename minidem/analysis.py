@@ -140,10 +140,14 @@ def summary(result: RunResult) -> dict:
     else:
         out.update({"angle_deg": None, "speed": None})
         measures = {k: None for k in ("en", "et", "x", "y1", "y2")}
-        if scene.n_particles == 2 and result.first_contact_time >= 0 and result.contacts == 0:
-            # a two-sphere collision: the sphere-sphere counterparts of en and et
+        walls = scene.walls
+        no_walls = scene.wall_point.shape[0] == 0 and (walls is None or (
+            walls.cylinder_base.shape[0] == 0 and walls.triangles.shape[0] == 0))
+        if scene.n_particles == 2 and no_walls and result.first_contact_time >= 0 and result.contacts == 0:
+            # a two-sphere collision (with no walls, the one contact there can be): the
+            # sphere-sphere counterparts of en and et
             pair = pair_rebound(result)
-            measures.update({k: v for k, v in pair.items() if math.isfinite(v)})
+            measures.update({k: v for k, v in pair.items() if v is not None and math.isfinite(v)})
     out.update({k: measures[k] for k in ("en", "et", "x", "y1", "y2")})
     duration = (result.last_separation_time - result.first_contact_time
                 if result.first_contact_time >= 0 and result.last_separation_time >= 0 else None)
@@ -188,7 +192,8 @@ def pair_rebound(result: RunResult, i: int = 0, j: int = 1) -> dict:
     after = result.velocity[i] - result.velocity[j]
     tangential = before - np.dot(before, n) * n
     speed_t = float(np.linalg.norm(tangential))
-    out = {"en": float(np.dot(after, n)) / -float(np.dot(before, n)), "et": math.nan}
+    approach = -float(np.dot(before, n))
+    out = {"en": float(np.dot(after, n)) / approach if approach > 0.0 else math.nan, "et": math.nan}
     if speed_t > 0.0:
         t = tangential / speed_t
         out["et"] = float(np.dot(after, t)) / speed_t

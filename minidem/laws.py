@@ -285,7 +285,8 @@ class LawRegistry:
     def __init__(self):
         self._laws: dict[str, RegisteredLaw] = {}
         self._aliases: dict[str, str] = {}
-        self._contested: dict[str, str] = {}  # a name two plugins claimed -> who claimed it
+        # name -> the third-party laws that claimed it (plugin, distribution, law), used or not
+        self._claims: dict[str, list[tuple[str, str, str]]] = {}
         self.broken: list[BrokenPlugin] = []
         self._current = ("<direct>", "<direct>", "")
 
@@ -314,31 +315,36 @@ class LawRegistry:
     def _claim_problem(self, law: ContactLaw, plugin: str, dist: str) -> str | None:
         """Why ``law`` cannot have its name and aliases, or None. minidem's own laws are
         registered first and keep theirs: a plugin never replaces a built-in law, under
-        its name or an alias. Two plugins claiming one name are both refused (which
-        plugin sorts first must not decide which law a scenario runs)."""
-        for claimed in dict.fromkeys([law.name, *(a.lower() for a in law.aliases)]):
-            if claimed in self._contested:
-                return (f"name '{claimed}' is claimed by more than one plugin ({self._contested[claimed]}); "
-                        "none of them gets it: uninstall all but one")
+        its name or an alias. A third-party law is used only if no other third-party law
+        claims any of its names: a clash refuses every law in it, whichever plugin was
+        loaded first (so the plugins' order never decides which law a scenario runs)."""
+        names = list(dict.fromkeys([law.name, *(a.lower() for a in law.aliases)]))
+        for claimed in names:
             owner = self._owner(claimed)
-            if owner is None:
-                continue
-            what = "name" if claimed == law.name else "alias"
-            if owner.distribution == hookspecs.PROJECT_NAME or owner.plugin == plugin:
+            if owner is not None and (owner.distribution == hookspecs.PROJECT_NAME or owner.plugin == plugin):
+                what = "name" if claimed == law.name else "alias"
                 why = "; a plugin cannot replace a built-in law" if owner.plugin != plugin else ""
                 return (f"{what} '{claimed}' is already taken by plugin '{owner.plugin}' ({owner.distribution}), "
                         f"law '{owner.law.name}'{why}")
-            # two third-party plugins: withdraw the first one's law too
-            claimants = f"'{owner.plugin}' ({owner.distribution}) and '{plugin}' ({dist})"
-            self._contested[claimed] = claimants
-            del self._laws[owner.law.name]
-            self._aliases = {a: n for a, n in self._aliases.items() if n != owner.law.name}
-            reason = (f"name '{claimed}' is claimed by plugins {claimants}; neither law is used: "
-                      "uninstall one of them")
-            self.broken.append(BrokenPlugin(owner.plugin, owner.law.name, reason,
-                                            tuple(a.lower() for a in owner.law.aliases)))
-            return reason
-        return None
+        rivals = {}  # (plugin, distribution, law) -> the first name it shares with this law
+        for claimed in names:
+            for claimant in self._claims.get(claimed, []):
+                rivals.setdefault(claimant, claimed)
+        for claimed in names:
+            self._claims.setdefault(claimed, []).append((plugin, dist, law.name))
+        if not rivals:
+            return None
+        for (rival_plugin, rival_dist, rival_law), shared in rivals.items():
+            rival = self._laws.get(rival_law)
+            if rival is not None and rival.plugin == rival_plugin:  # in use until now: withdraw it
+                del self._laws[rival_law]
+                self._aliases = {a: n for a, n in self._aliases.items() if n != rival_law}
+                self.broken.append(BrokenPlugin(rival_plugin, rival_law, (
+                    f"name '{shared}' is also claimed by plugin '{plugin}' ({dist}), law '{law.name}'; neither "
+                    "law is used: uninstall one of them"), tuple(a.lower() for a in rival.law.aliases)))
+        (rival_plugin, rival_dist, rival_law), shared = next(iter(rivals.items()))
+        return (f"name '{shared}' is also claimed by plugin '{rival_plugin}' ({rival_dist}), law '{rival_law}'; "
+                "neither law is used: uninstall one of them")
 
     # -- lookup -------------------------------------------------------------------
     def names(self) -> list[str]:

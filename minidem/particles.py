@@ -61,8 +61,9 @@ BULK_DIAMETERS = 4  # a region at least this many largest diameters wide on ever
 
 # Consecutive failed attempts after which a fill is declared jammed. Measured here with
 # radius 1 mm: in a 30 x 30 x 20 mm region the longest run of failures before a success
-# was 545 at 25 % solid and 10,009 at 30 %; at ~30 us an attempt the cap costs 0.6 s.
-MAX_CONSECUTIVE_FAILURES = 20_000
+# was 545 at 25 % solid and 10,009 at 30 %, and runs grow fast towards saturation (0.38):
+# 10x that margin, at ~30 us an attempt, costs 3 s before a jammed fill is refused.
+MAX_CONSECUTIVE_FAILURES = 100_000
 
 
 def random_packing(lower, upper, count: int, radius_min: float, radius_max: float, seed: int = 12345,
@@ -157,9 +158,12 @@ def read_particles(path: str | Path) -> dict[str, np.ndarray]:
         if names and table.size == 0:
             raise ValueError(f"particle CSV '{path}' has a header ({','.join(names)}) but no data rows; "
                              "give one row per particle")
-        # the cells as written: genfromtxt reads text that is not a number as NaN
-        with open(path, encoding="utf-8", newline="") as handle:
-            cells = [row for row in csv.reader(handle) if row][1:]
+        # the cells as written (genfromtxt reads text that is not a number as NaN), with
+        # the lines genfromtxt skips skipped the same way: blank ones, and '#' comments
+        # (a whole line, or the end of one)
+        with open(path, encoding="utf-8") as handle:
+            lines = [line.split("#", 1)[0] for line in handle]
+        cells = [row for row in csv.reader(line for line in lines if line.strip())][1:]
         missing = [c for c in ("x", "y", "z", "radius") if c not in names]
         if missing:
             raise ValueError(f"particle CSV '{path}' lacks column(s) {missing}; its header has {list(names)}")

@@ -314,10 +314,10 @@ _STATE_TUPLES = {
     "planes": (None, None, None, "plane_history", "plane_overlap"),
     "cylinders": (None, None, None, None, None, "cylinder_history", "cylinder_overlap"),
     "meshes": (None, None, "mesh_offsets", "mesh_candidates", "mesh_history", "mesh_overlap"),
-    # the reactions, their slots and the transposed offsets are not state: the reactions
-    # are rewritten by every step's force pass (zero for entries not touching, as after a
-    # rebuild), the other two follow from the list (State.restore recomputes them)
-    "pairs": ("pair_offsets", "pair_neighbours", "pair_history", "pair_overlap", None, None, None),
+    # the reactions' slots and the transposed offsets follow from the list (State.restore
+    # recomputes them); the reactions are kept: a step rewrites them before reading, but
+    # the last good state's VTK frame and contact forces read them as they are
+    "pairs": ("pair_offsets", "pair_neighbours", "pair_history", "pair_overlap", "pair_reaction", None, None),
 }
 
 
@@ -412,7 +412,7 @@ class State:
             reverse_offsets, slot = neighbours.reverse_index(offsets, partners, len(offsets) - 1)
         else:
             reverse_offsets, slot = np.zeros_like(offsets), partners.copy()
-        self.pairs = self.pairs[:4] + (np.zeros((partners.shape[0], 6)), slot, reverse_offsets)
+        self.pairs = self.pairs[:5] + (slot, reverse_offsets)
         self.builds = int(arrays["builds"])
 
     def count_contacts(self) -> int:
@@ -437,6 +437,10 @@ class Simulation:
             scene.walls = WallSet.empty()
             scene.walls.plane_point, scene.walls.plane_normal = scene.wall_point, scene.wall_normal
             scene.walls.plane_material = scene.wall_material
+            planes = scene.wall_point.shape[0]  # no [[walls]] tables: -1
+            scene.walls.plane_table = np.full(planes, -1, dtype=np.int64)
+            scene.walls.plane_label = ["plane"] * planes
+            scene.walls.plane_display_bounds = [[] for _ in range(planes)]
         registry = registry or laws.registry()
         self.entry = registry.entry(scene.law_name)
         self.law = self.entry.law
@@ -832,7 +836,7 @@ class Simulation:
                 call(loop["steps"], 0, False, no_trace)  # changes nothing: the resumed state is untouched
         except numba.core.errors.NumbaError as exc:
             raise laws.LawError(f"law '{self.law.name}' from plugin '{self.entry.plugin}' "
-                                f"({self.entry.distribution}): {_force_problem(self.law, exc)}") from exc
+                                f"({self.entry.distribution}): {force_problem(self.law, exc)}") from exc
         if resume_from is None:
             energy.append((start_time, state.kinetic_energy(inertia)))
             if frames_on:
@@ -844,22 +848,14 @@ class Simulation:
 
         def snapshot(reuse=None):
             """The state now, for checkpoints and as the last good state; ``reuse``: an
-            older snapshot, overwritten in place (one copy of the state, not two)."""
+            older snapshot, overwritten in place (one copy of the state, not two). The
+            arrays and the loop's bookkeeping are recorded together with SIGINT/SIGTERM
+            held, so an interrupt never finds them from two different steps."""
             with _interrupts_deferred():
-                try:
-                    arrays = state.capture(into=reuse["arrays"] if reuse else None)
-                except KeyboardInterrupt:
-                    # a Ctrl-C that arrived just before the signals were held: the copy
-                    # may be torn, but the live state is still the checked one, so take
-                    # it whole before stopping
-                    if reuse is not None:
-                        record(reuse, state.capture(into=reuse["arrays"]))
-                    raise
-            return record({} if reuse is None else reuse, arrays)
-
-        def record(snap, arrays):
-            snap.update(arrays=arrays, tracking=(probe.copy(), stats.copy(), status.copy()), loop=dict(loop),
-                        energy=len(energy), trace=len(trace_chunks))
+                snap = {} if reuse is None else reuse
+                snap["arrays"] = state.capture(into=reuse["arrays"] if reuse else None)
+                snap.update(tracking=(probe.copy(), stats.copy(), status.copy()), loop=dict(loop),
+                            energy=len(energy), trace=len(trace_chunks))
             return snap
 
         def write_state(name, snap, kind):
@@ -1030,7 +1026,10 @@ class Simulation:
         elif kind == kernel.CYLINDER and partner < len(walls.cylinder_table):
             what = f"walls[{int(walls.cylinder_table[partner])}] (cylinder)"
         elif kind == kernel.TRIANGLE and partner < len(walls.triangle_table):
-            what = f"triangle {partner} of the mesh walls[{int(walls.triangle_table[partner])}]"
+            table = int(walls.triangle_table[partner])
+            # the triangles of all meshes are one array: number it within its own mesh
+            own = partner - int(np.argmax(walls.triangle_table == table))
+            what = f"triangle {own} of the mesh walls[{table}]"
         else:
             what = f"{ {kernel.PARTICLE: 'particle', kernel.CYLINDER: 'cylinder'}.get(kind, 'partner')} {partner}"
         if code == kernel.NON_FINITE_FORCE:
@@ -1074,7 +1073,7 @@ _FORCE_SIGNATURE = (numba.types.Array(numba.types.float64, 1, "C"), *(numba.type
                     numba.types.Array(numba.types.float64, 1, "C"))
 
 
-def _force_problem(law: laws.ContactLaw, exc: Exception) -> str:
+def force_problem(law: laws.ContactLaw, exc: Exception) -> str:
     """Why a law's force function broke the kernel's compilation: compiled alone with the
     engine's argument types, so the message names the law's function and file (and a
     wrong return value), not the kernel line that called it."""

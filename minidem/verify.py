@@ -13,6 +13,7 @@ import dataclasses
 import math
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from minidem import analysis, laws, scenario, simulation
@@ -126,8 +127,12 @@ class Battery:
             phase = math.pi * step / steps
             overlap = peak * math.sin(phase)
             velocity = (tangential_speed * math.cos(2.0 * phase), 0.3 * tangential_speed * math.sin(3.0 * phase), 0.0)
-            self.law.force(row, radius, mass, overlap, overlap - previous, normal_speed * math.cos(phase),
-                           (velocity[0] * dt, velocity[1] * dt, velocity[2] * dt), velocity, history)
+            try:
+                self.law.force(row, radius, mass, overlap, overlap - previous, normal_speed * math.cos(phase),
+                               (velocity[0] * dt, velocity[1] * dt, velocity[2] * dt), velocity, history)
+            except numba.core.errors.NumbaError as exc:  # the force does not compile: say where, exit 2
+                raise laws.LawError(f"law '{self.law.name}' from plugin '{self.entry.plugin}' "
+                                    f"({self.entry.distribution}): {simulation.force_problem(self.law, exc)}") from exc
             previous = overlap
             written = np.flatnonzero(buffer[size:] != 1.2345678e-300)
             if written.size:

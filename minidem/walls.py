@@ -55,11 +55,11 @@ class WallSet:
 
     def plane_name(self, w: int) -> str:
         """The plane wall w as a user wrote it: its [[walls]] table and what it is."""
-        if w < len(self.plane_table):
+        geometry = f"the plane through {self.plane_point[w].tolist()} with normal {self.plane_normal[w].tolist()}"
+        if w < len(self.plane_table) and self.plane_table[w] >= 0:
             label = "" if self.plane_label[w] == "plane" else f"{self.plane_label[w]}: "
-            return (f"walls[{int(self.plane_table[w])}] ({label}the plane through "
-                    f"{self.plane_point[w].tolist()} with normal {self.plane_normal[w].tolist()})")
-        return f"plane {w}"
+            return f"walls[{int(self.plane_table[w])}] ({label}{geometry})"
+        return f"plane {w} ({geometry})"
 
     def display_tables(self) -> np.ndarray:
         """The [[walls]] table of every surface of :func:`display_meshes`, in its order."""

@@ -212,6 +212,37 @@ def test_a_ctrl_c_during_the_copy_of_the_last_good_state_waits_for_the_copy():
     assert events == ["copy finished"]
 
 
+def test_a_ctrl_c_during_a_copy_checkpoints_a_whole_state(tmp_path, monkeypatch):
+    """SIGINT arriving while the last good state is copied (held until the copy and its
+    step count are both recorded): the checkpoint then written resumes to the
+    uninterrupted result bit for bit. The diff review found the arrays of the new step
+    saved with the step count of the previous copy."""
+    def load():
+        return scenario.load_scene(REPO / "scenarios" / "newtons_cradle.toml", ["run.end_time=2e-4"], "-")
+
+    reference = simulation.Simulation(load()).run()
+    original, copies = simulation.State.capture, []
+
+    def capture(self, into=None):
+        out = original(self, into)
+        copies.append(self.position.copy())
+        if len(copies) == 3:  # a copy in the loop, overwriting the last good state
+            signal.raise_signal(signal.SIGINT)
+        return out
+
+    monkeypatch.setattr(simulation.State, "capture", capture)
+    with pytest.raises(KeyboardInterrupt):
+        simulation.Simulation(load()).run(checkpoints=checkpoint.Policy(tmp_path, interval=2e-5), chunk_steps=100)
+    monkeypatch.setattr(simulation.State, "capture", original)
+    arrays, meta = checkpoint.read(tmp_path / checkpoint.CHECKPOINT)
+    assert np.array_equal(arrays["position"], copies[2])  # the newest copy, with its own step count:
+    sim = simulation.Simulation(load())
+    resumed = sim.run(resume_from=checkpoint.load_for_resume(sim, tmp_path))
+    assert resumed.steps == reference.steps
+    assert np.array_equal(resumed.position, reference.position)
+    assert np.array_equal(resumed.velocity, reference.velocity)
+
+
 def test_blow_up_stops_with_the_last_good_state_and_a_time_step_to_try(tmp_path):
     # The settling scene at 50 times its time step: dt = 1 ms against a Hertz contact
     # time of ~0.3 ms, so contacts inject energy at every step. The run must stop with

@@ -287,9 +287,41 @@ def test_two_plugins_claiming_one_name_are_both_refused(fake_site):
     assert "fake_claimed" not in registry.names()
     refused = [b for b in registry.broken if b.law == "fake_claimed"]
     assert sorted(b.plugin for b in refused) == ["fake_claim_a", "fake_claim_b"]
-    assert all("claimed by plugins 'fake_claim_a'" in b.reason and "uninstall one" in b.reason for b in refused)
-    with pytest.raises(laws.LawError, match="fake_claimed.*is broken.*claimed by plugins"):
+    assert all("is also claimed by plugin 'fake_claim_" in b.reason and "uninstall one" in b.reason for b in refused)
+    with pytest.raises(laws.LawError, match="fake_claimed.*is broken.*also claimed by plugin"):
         registry.get("fake_claimed_alias")
+
+
+@pytest.mark.parametrize("order", ["ABC", "ACB", "BAC", "BCA", "CAB", "CBA"])
+def test_which_plugin_loads_first_never_decides_a_name(order):
+    """A = foo (alias bar), B = baz (alias bar), C = foo: every law shares a name with
+    another, so none is used, in every load order (the diff review found that a law
+    withdrawn from a clash left its other names to whichever plugin came later)."""
+    import types
+
+    from minidem import hookimpl
+
+    plugins = {}
+    for key, name, aliases in (("A", "foo", ("bar",)), ("B", "baz", ("bar",)), ("C", "foo", ())):
+        module = types.ModuleType(f"plugin_{key}")
+
+        def register(registry, name=name, aliases=aliases):
+            registry.add(laws_module_law(name, aliases))
+
+        module.minidem_register_laws = hookimpl(lambda registry, r=register: r(registry))
+        plugins[key] = module
+    registry = laws.load_registry(extra_plugins=tuple(plugins[k] for k in order))
+    assert not {"foo", "bar", "baz"} & set(registry.names()), (order, registry.names())
+    assert len([b for b in registry.broken if b.law in ("foo", "baz")]) == 3
+    alone = laws.load_registry(extra_plugins=(plugins["A"],))  # the control: no clash, used
+    assert alone.get("bar").name == "foo"
+
+
+def laws_module_law(name, aliases):
+    """A minimal valid law (the built-in linear spring's declaration under another name)."""
+    import dataclasses
+
+    return dataclasses.replace(laws.load_registry().get("ls"), name=name, aliases=aliases)
 
 
 def test_unknown_law_names_the_plugins_that_failed_to_load(announced):

@@ -260,6 +260,11 @@ FILE_FILL = SPHERES.format(z0=0.1, z1=0.2) + '\n[[fill]]\nkind = "file"\nmateria
     ("x,y,z,radius\n0.05,0.05,0.05,0.001\n0.02,0.02,0.02,abc\n",
      ["column 'radius' (radius) of data row 2 (counting from 1 after the header) is 'abc', not a number, "
       "expected a finite number > 0 (m)"]),
+    # comment lines and trailing comments, which the reader skips, must not shift the row
+    # the message quotes (diff review)
+    ("x,y,z,radius\n0.05,0.05,0.05,0.001  # first layer\n# second layer\n\n0.08,0.08,0.08,0.001\n"
+     "0.02,abc,0.02,0.001\n",
+     ["column 'y' (position) of data row 3 (counting from 1 after the header) is 'abc', not a number"]),
 ])
 def test_file_fill_values_must_be_finite(csv, fragments, tmp_path, capsys):
     (tmp_path / "beads.csv").write_text(csv)

@@ -367,7 +367,7 @@ def test_random_fill_that_cannot_fit_is_a_clear_error(tmp_path):
                       "upper": [0.004, 0.004, 0.004], "count": 9}],
             "run": {"stop": "time", "end_time": 0.1}}
     with pytest.raises(scenario.ScenarioError, match=r"fill\[0\]: placed only [1-8] of 9 non-overlapping spheres.*"
-                       r"\(20000 in a row failed"):
+                       r"\(100000 in a row failed"):
         scenario.build_scene(data, "scene.toml")
 
 
