@@ -93,6 +93,11 @@ class LoopThreads:
     PROBE_FIRST, PROBE_MAX = 4, 64
     # chunks shorter than this (cut short by a list rebuild) are too noisy to compare
     MIN_STEPS = 10
+    # a probe runs this fraction of a chunk (at least 2 MIN_STEPS): a probe that loses
+    # costs a quarter of a chunk on the slower count (settle, N = 20,000, lattice, 10,000
+    # steps: 1.2 % of the steps on one thread instead of 3 %; run.threads = 2 stays ~2 %
+    # behind two threads pinned, 8.77 s against 8.56 s, 2026-11-22 13:40 UTC)
+    PROBE_FRACTION = 4
 
     def __init__(self, most: int):
         self.most = most
@@ -931,9 +936,12 @@ class Simulation:
                 if checkpoint_steps:
                     goal = min(goal, (steps // checkpoint_steps + 1) * checkpoint_steps)
                 chunk = goal - steps
+                chunk_threads = loop_threads.choose()
+                probing = chunk_threads != loop_threads.current
+                if probing:  # it only has to time the other count: a short chunk does
+                    chunk = min(chunk, max(2 * LoopThreads.MIN_STEPS, chunk // LoopThreads.PROBE_FRACTION))
                 trace = np.zeros((chunk, len(kernel.TRACE_COLUMNS))) if scene.trace else no_trace
                 chunk_started = wallclock.perf_counter()
-                chunk_threads = loop_threads.choose()
                 taken, needs_rebuild = call(steps, chunk, completing, trace, chunk_threads)
                 loop_threads.record(chunk_threads, taken, wallclock.perf_counter() - chunk_started)
                 if scene.trace:
@@ -952,7 +960,7 @@ class Simulation:
                     self.rebuild(state)
                     completing = True  # the next call completes the step from its forces
                     continue
-                if taken == chunk and wallclock.perf_counter() - chunk_started < 0.1:
+                if taken == chunk and not probing and wallclock.perf_counter() - chunk_started < 0.1:
                     chunk_goal = min(chunk_steps, chunk_goal * 2)
                 now = start_time + steps * self.dt
                 check(steps)
