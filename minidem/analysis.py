@@ -140,10 +140,8 @@ def summary(result: RunResult) -> dict:
     else:
         out.update({"angle_deg": None, "speed": None})
         measures = {k: None for k in ("en", "et", "x", "y1", "y2")}
-        walls = scene.walls
-        no_walls = scene.wall_point.shape[0] == 0 and (walls is None or (
-            walls.cylinder_base.shape[0] == 0 and walls.triangles.shape[0] == 0))
-        if scene.n_particles == 2 and no_walls and result.first_contact_time >= 0 and result.contacts == 0:
+        if (scene.n_particles == 2 and not scene.has_walls and result.first_contact_time >= 0
+                and result.contacts == 0):
             # a two-sphere collision (with no walls, the one contact there can be): the
             # sphere-sphere counterparts of en and et
             pair = pair_rebound(result)

@@ -278,6 +278,13 @@ class Scene:
         return self.radius.shape[0]
 
     @property
+    def has_walls(self) -> bool:
+        """Any plane, cylinder or mesh wall."""
+        walls = self.walls
+        return bool(self.wall_point.shape[0] or (walls is not None and (
+            walls.cylinder_base.shape[0] or walls.triangles.shape[0])))
+
+    @property
     def one_sphere_among_planes(self) -> bool:
         """One particle and no cylinder or mesh walls: its free flight to a plane has a
         closed form (run.integrator = "analytic_flight")."""
@@ -695,11 +702,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         checkpoint_wall_interval=output["checkpoint_wall_interval"],
         fill_ranges=fill_ranges,
     )
-    wall_set.plane_point, wall_set.plane_normal = scene.wall_point, scene.wall_normal
-    wall_set.plane_material = scene.wall_material
-    wall_set.plane_table = np.array([table for table, _, _ in plane_origin], dtype=np.int64)
-    wall_set.plane_label = [label for _, label, _ in plane_origin]
-    wall_set.plane_display_bounds = [bounds for _, _, bounds in plane_origin]
+    wall_set.set_planes(scene.wall_point, scene.wall_normal, scene.wall_material, plane_origin)
     if cylinders:
         wall_set.cylinder_base = np.array([c[0] for c in cylinders])
         wall_set.cylinder_axis = np.array([c[1] for c in cylinders])

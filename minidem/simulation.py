@@ -440,12 +440,7 @@ class Simulation:
             from minidem.walls import WallSet
 
             scene.walls = WallSet.empty()
-            scene.walls.plane_point, scene.walls.plane_normal = scene.wall_point, scene.wall_normal
-            scene.walls.plane_material = scene.wall_material
-            planes = scene.wall_point.shape[0]  # no [[walls]] tables: -1
-            scene.walls.plane_table = np.full(planes, -1, dtype=np.int64)
-            scene.walls.plane_label = ["plane"] * planes
-            scene.walls.plane_display_bounds = [[] for _ in range(planes)]
+            scene.walls.set_planes(scene.wall_point, scene.wall_normal, scene.wall_material)
         registry = registry or laws.registry()
         self.entry = registry.entry(scene.law_name)
         self.law = self.entry.law
@@ -1038,8 +1033,10 @@ class Simulation:
             # the triangles of all meshes are one array: number it within its own mesh
             own = partner - int(np.argmax(walls.triangle_table == table))
             what = f"triangle {own} of the mesh walls[{table}]"
+        elif kind == kernel.PARTICLE:
+            what = f"particle {partner}"
         else:
-            what = f"{ {kernel.PARTICLE: 'particle', kernel.CYLINDER: 'cylinder'}.get(kind, 'partner')} {partner}"
+            what = f"partner {partner} (kind {kind})"
         if code == kernel.NON_FINITE_FORCE:
             return (f"law '{self.law.name}' ({self.entry.distribution}) returned a non-finite force {when} for "
                     f"particle {particle} against {what}")

@@ -53,10 +53,21 @@ class WallSet:
     plane_display_bounds: list = dataclasses.field(default_factory=list)
     mesh_table: list = dataclasses.field(default_factory=list)  # per entry of ``meshes``
 
+    def set_planes(self, point, normal, material, origin=None) -> None:
+        """The plane walls, with where each came from: ``origin`` per plane is
+        ([[walls]] table, what it is, display bounds), see the fields above; None for
+        planes that belong to no table (a Scene built by hand)."""
+        self.plane_point, self.plane_normal, self.plane_material = point, normal, material
+        if origin is None:
+            origin = [(-1, "plane", [])] * point.shape[0]
+        self.plane_table = np.array([table for table, _, _ in origin], dtype=np.int64)
+        self.plane_label = [label for _, label, _ in origin]
+        self.plane_display_bounds = [bounds for _, _, bounds in origin]
+
     def plane_name(self, w: int) -> str:
         """The plane wall w as a user wrote it: its [[walls]] table and what it is."""
         geometry = f"the plane through {self.plane_point[w].tolist()} with normal {self.plane_normal[w].tolist()}"
-        if w < len(self.plane_table) and self.plane_table[w] >= 0:
+        if self.plane_table[w] >= 0:
             label = "" if self.plane_label[w] == "plane" else f"{self.plane_label[w]}: "
             return f"walls[{int(self.plane_table[w])}] ({label}{geometry})"
         return f"plane {w} ({geometry})"
@@ -164,8 +175,7 @@ def display_meshes(walls: WallSet, extent_lower, extent_upper) -> list[tuple[np.
         foot = centre - float(np.dot(centre - point, normal)) * normal
         square = plane_to_quad(foot, normal, half)
         polygon = square[0]
-        bounds = walls.plane_display_bounds[index] if index < len(walls.plane_display_bounds) else []
-        for other, (other_point, other_normal) in enumerate(planes + list(bounds)):
+        for other, (other_point, other_normal) in enumerate(planes + list(walls.plane_display_bounds[index])):
             if other != index:
                 polygon = _clip_polygon(polygon, other_point, other_normal, 1e-12 * half)
         if len(polygon) < 3:  # nothing faces the particles: show the plain square
