@@ -17,6 +17,7 @@ import hashlib
 import importlib.util
 import math
 import os
+import re
 import inspect
 import signal
 import sys
@@ -243,7 +244,8 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
         f"{_engine_hash()}|{law_hash}|{entry.distribution}|{entry.version}|{force_module}."
         f"{force_name}|{flags}|{law.vector_history_offsets}|{numba.__version__}|{__version__}".encode()
     ).hexdigest()[:16]
-    module_name = f"minidem_kernel_{law.name}_{key}"
+    # a combination's name joins its parts with '+': a module name takes identifiers only
+    module_name = f"minidem_kernel_{re.sub(r'[^A-Za-z0-9_]', '_', law.name)}_{key}"
     if module_name in _LOADED:
         return _LOADED[module_name]
     template = _TEMPLATE.read_text()
