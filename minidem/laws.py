@@ -436,6 +436,11 @@ class LawRegistry:
         """(plugin, distribution, version) of a registered part."""
         return self._parts[name][1]
 
+    def preset_of(self, entry: RegisteredLaw) -> Preset | None:
+        """The preset an entry of ``entry()`` was made from, None for a law or a bare combination."""
+        found = self._presets.get(entry.law.name)
+        return found[0] if found is not None else None
+
     def presets(self) -> list[Preset]:
         return [preset for _, (preset, _) in sorted(self._presets.items())]
 
@@ -471,13 +476,14 @@ class LawRegistry:
         parts = tuple(self.part(kind, choice[kind]) for kind in KINDS
                       if choice.get(kind) not in (None, "none"))
         compose.check_combination(parts)
-        key = "+".join(p.name for p in parts) + (f"@{name}" if name else "")
+        key = "+".join(p.name for p in parts) + f"@{name}{sorted((defaults or {}).items())}"
         if key not in self._combinations:
             origins = [self._parts[p.name][1] for p in parts]
             law = compose.compose(parts, origins, defaults or {}, name)
             plugins = ", ".join(dict.fromkeys(o[0] for o in origins))
-            dists = dict.fromkeys(f"{o[1]} {o[2]}".strip() for o in origins)
-            self._combinations[key] = RegisteredLaw(law, plugins, " + ".join(dists), "")
+            dists = dict.fromkeys((o[1], o[2]) for o in origins)  # in KINDS order, each once
+            self._combinations[key] = RegisteredLaw(law, plugins, " + ".join(d for d, _ in dists),
+                                                    " + ".join(v for _, v in dists))
         return self._combinations[key]
 
     # -- the object plugins receive in minidem_register_laws(registry) -------------

@@ -446,7 +446,9 @@ class Simulation:
         registry = registry or laws.registry()
         self.entry = registry.entry(scene.law_name)
         self.law = self.entry.law
-        self.spin = self.law.is_frictional(scene.law_parameters)
+        # spin is needed when any material pair can carry a tangential force
+        self.spin = any(self.law.is_frictional(params)
+                        for params in (scene.law_parameters, *scene.pair_parameters.values()))
         self.pairs = scene.n_particles > 1
         self.parallel = scene.n_particles > PARALLEL_ABOVE and scene.stop != "separation"
         self.skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
@@ -483,7 +485,7 @@ class Simulation:
             for b in range(a, n):
                 pair = laws.ContactPair.from_materials(materials[a], materials[b], radius, mass, speed)
                 try:
-                    row, named = law.prepared_constants(pair, scene.law_parameters)
+                    row, named = law.prepared_constants(pair, scene.pair_parameters.get((a, b), scene.law_parameters))
                 except laws.LawError:
                     raise
                 except Exception as exc:  # noqa: BLE001 - a plugin's prepare() is user code
