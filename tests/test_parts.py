@@ -10,6 +10,7 @@ tests, so the laws' kernels are shared with test_paper; each combination adds on
 from __future__ import annotations
 
 import importlib
+import re
 import sys
 import textwrap
 
@@ -231,3 +232,53 @@ def test_combination_checks_every_requirement():
     registry = laws.load_registry()
     with pytest.raises(laws.LawError, match="requires a 'hertzian' part"):
         compose.check_combination((registry.part("normal", "hooke"), registry.part("tangential", "mindlin")))
+
+
+# -- a third-party part, installed for real from the guide's example ------------------
+def _guide_block(text: str, marker: str, lang: str) -> str:
+    start = text.index(f"```{lang}\n", text.index(marker)) + len(lang) + 4
+    return text[start:text.index("```", start)]
+
+
+def test_guide_part_plugin_installs_and_combines_with_builtin_parts(tmp_path):
+    # docs/writing-a-contact-law.md section 3, as written: the module and pyproject.toml
+    # installed with pip (into a folder on PYTHONPATH), listed, and run in a fresh process
+    # with the built-in hooke and linear_history parts and the guide's [contact] table.
+    import json
+    import math
+    import subprocess
+    import tomllib
+
+    from conftest import REPO
+
+    guide = (REPO / "docs" / "writing-a-contact-law.md").read_text()
+    source = tmp_path / "src"
+    source.mkdir()
+    (source / "minidem_constant_dashpot.py").write_text(_guide_block(guide, "**The part module**", "python"))
+    (source / "pyproject.toml").write_text(_guide_block(guide, "**Its pyproject.toml**", "toml"))
+    site = tmp_path / "site"
+    pip = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
+                          "--target", str(site), str(source)], capture_output=True, text=True)
+    assert pip.returncode == 0, pip.stderr
+    env = {"PYTHONPATH": str(site)}
+
+    listed = run_cli("laws", "--json", env=env)
+    assert listed.returncode == 0, listed.stderr
+    payload = json.loads(listed.stdout)
+    part = next(p for p in payload["parts"] if p["name"] == "constant_dashpot")
+    assert (part["kind"], part["package"]) == ("damping", "minidem-constant-dashpot")
+    assert not payload["broken"]
+
+    table = _guide_block(guide, "After `pip install .`", "toml")
+    contact = tomllib.loads(table)["contact"]
+    scene = tmp_path / "impact.toml"  # the paper's impact with the guide's [contact] table
+    scene.write_text(re.sub(r"\[contact\]\n(.*\n)*?\n", table + "\n", OBLIQUE.read_text(), count=1))
+    ran = run_cli("run", scene, "--out", tmp_path / "run", "--set", "impact.angle_deg=0", env=env)
+    assert ran.returncode == 0, ran.stderr
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["law"] == "hooke+constant_dashpot+linear_history"
+    # a linear spring-dashpot released at zero overlap: e = exp(-zeta pi / sqrt(1 - zeta^2)),
+    # zeta = c / (2 sqrt(m* kn)); a sphere on a wall: m* = m
+    mass = 4.0 / 3.0 * math.pi * 0.025**3 * 2650.0
+    zeta = contact["dashpot_coefficient"] / (2.0 * math.sqrt(mass * contact["normal_stiffness"]))
+    assert summary["en"] == pytest.approx(math.exp(-zeta * math.pi / math.sqrt(1.0 - zeta**2)), rel=1e-4)
