@@ -38,6 +38,9 @@ _ALIAS_PATTERN = re.compile(r"^[a-z][a-z0-9_-]*$")  # matched lower-cased: the p
 # the force function's arguments, in the order the engine passes them
 FORCE_ARGUMENTS = ("constants", "effective_radius", "effective_mass", "normal_overlap", "normal_overlap_increment",
                    "normal_velocity", "tangential_increment", "tangential_velocity", "history")
+# a law with couples (ContactLaw.couples: rolling or twisting resistance) also gets these,
+# and returns (fn, ftx, fty, ftz, mx, my, mz), the couple on the first body
+COUPLE_ARGUMENTS = ("relative_spin", "normal", "dt")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -181,10 +184,15 @@ class ContactLaw:
     frictional: bool = True
     reference: str = ""
     stiffness: Callable | None = None
+    couples: bool = False
 
     @property
     def history_size(self) -> int:
         return sum(slot.size for slot in self.history)
+
+    @property
+    def force_arguments(self) -> tuple[str, ...]:
+        return FORCE_ARGUMENTS + (COUPLE_ARGUMENTS if self.couples else ())
 
     @property
     def vector_history_offsets(self) -> tuple[int, ...]:
@@ -245,6 +253,10 @@ class ContactLaw:
         return row, produced
 
     def is_frictional(self, params: Mapping[str, Any]) -> bool:
+        """Whether the law needs the spheres' spin: it can produce a tangential force, or
+        it has couples (rolling, twisting)."""
+        if self.couples:
+            return True
         if not self.frictional:
             return False
         return params.get("friction", 1.0) != 0.0
@@ -267,7 +279,7 @@ class ContactLaw:
 # part's elastic force and stiffness are the damping part's input, the total normal force
 # is the tangential part's Coulomb limit. Those couplings are the whole of what parts
 # share; everything else a part keeps to itself (its constants, its history).
-KINDS = ("normal", "damping", "tangential")
+KINDS = ("normal", "damping", "tangential", "rolling", "twisting")
 PART_ARGUMENTS = {
     # -> (elastic normal force N, tangent stiffness dFn/d(overlap) N/m, contact radius m)
     "normal": ("constants", "effective_radius", "effective_mass", "normal_overlap", "normal_overlap_increment",
@@ -279,6 +291,15 @@ PART_ARGUMENTS = {
     "tangential": ("constants", "effective_radius", "effective_mass", "normal_overlap", "normal_overlap_increment",
                    "contact_radius", "elastic_normal_force", "normal_force", "tangential_increment",
                    "tangential_velocity", "history"),
+    # -> (mx, my, mz) N m, the couple on the first body (the second gets its opposite);
+    # rolling_increment: the spin of the first body relative to the second, in the
+    # tangent plane, times dt (rad; a vector of the tangent plane, like a history vector)
+    "rolling": ("constants", "effective_radius", "effective_mass", "normal_overlap", "contact_radius",
+                "normal_stiffness", "normal_force", "rolling_increment", "rolling_velocity", "history"),
+    # -> the couple about the normal on the first body, N m (positive along n);
+    # twisting_increment: the relative spin along n times dt (rad)
+    "twisting": ("constants", "effective_radius", "effective_mass", "normal_overlap", "contact_radius",
+                 "normal_stiffness", "normal_force", "twisting_increment", "twisting_velocity", "history"),
 }
 # what a part may do to the energy of the contact (analysis and verify check each kind
 # against its own bound): store it and give it back (a spring), dissipate it (a dashpot,
@@ -642,7 +663,9 @@ def _declaration_problem(law) -> str | None:
     for hook in ("contact_time", "stiffness"):
         if getattr(law, hook) is not None and not callable(getattr(law, hook)):
             return f"'{hook}' must be a function or None, got {type(getattr(law, hook)).__name__}"
-    return _compiled_function_problem(law.force, "force", FORCE_ARGUMENTS)
+    if not isinstance(law.couples, bool):
+        return f"'couples' must be True or False, got {law.couples!r}"
+    return _compiled_function_problem(law.force, "force", law.force_arguments)
 
 
 def _part_problem(part) -> str | None:

@@ -70,6 +70,8 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
             "instead of naming one; with a preset `law`, replaces the preset's part"),
         Key("damping", "str", None, "", "damping part (e.g. \"tsuji\", \"viscous\") or \"none\""),
         Key("tangential", "str", None, "", "tangential part (e.g. \"mindlin\", \"linear_history\") or \"none\""),
+        Key("rolling", "str", None, "", "rolling-resistance part (e.g. \"epsd\", \"constant_torque\") or \"none\""),
+        Key("twisting", "str", None, "", "twisting-resistance part (e.g. \"marshall\") or \"none\""),
         Key("pairs", "table", None, "", "per-material-pair parameter values: `[contact.pairs.\"beads/steel\"]` "
             "friction = 0.5 (the two material names joined by '/', either order)"),
     ), "The contact law and its parameters (friction included): a law or preset by name (`law = "
@@ -452,7 +454,7 @@ def _check_value(key: Key, value: Any, where: str, errors: _Errors) -> Any:
     raise AssertionError(key.kind)
 
 
-_PART_KEYS = ("normal", "damping", "tangential")
+_PART_KEYS = ("normal", "damping", "tangential", "rolling", "twisting")
 
 
 def _contact_law(contact: dict, material_index: dict, raw_materials: dict, errors: _Errors):

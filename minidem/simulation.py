@@ -236,8 +236,10 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
     integrator (compiled lazily, cached on disk). Integrators with the same kick split
     (velocity Verlet and analytic flight) share one kernel."""
     flags = dict(zip(KERNEL_FLAGS, (bool(spin), bool(pairs), bool(cylinders), bool(meshes), bool(parallel))))
-    flags["OPENING_KICK"] = integrate.OPENING_KICK[integrator]
     law = entry.law
+    # a law with rolling or twisting parts takes the relative spin and returns a couple
+    flags["COUPLES"] = bool(law.couples)
+    flags["OPENING_KICK"] = integrate.OPENING_KICK[integrator]
     force_module, force_name = laws.force_import_name(law)
     law_hash, law_dispatchers = _force_dependencies(law.force)
     key = hashlib.sha256(

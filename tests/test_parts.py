@@ -186,7 +186,7 @@ def minidem_register_laws(registry):
     registry.add(part("plugin_plain", plain_normal))
     registry.add(part("plugin_short", short_damping, kind="damping"))
     registry.add(part("hertz"))
-    registry.add(part("plugin_rolling", kind="rolling"))
+    registry.add(part("plugin_heat", kind="heat"))
     registry.add(part("plugin_energy", energy=("create",)))
     registry.add(Preset("soft_hertz", "Hertz, Tsuji damping at e = 0.5, Mindlin",
                         {"normal": "hertz", "damping": "tsuji", "tangential": "mindlin"}, {"restitution": 0.5}))
@@ -209,7 +209,7 @@ def test_broken_parts_are_isolated_and_named(plugin):
     assert "takes 2 arguments" in broken["plugin_short"].reason
     assert "constants, effective_radius, effective_mass, normal_overlap, normal_velocity" in broken["plugin_short"].reason
     assert "already taken by the normal part 'hertz' of plugin 'builtin'" in broken["hertz"].reason
-    assert "kind 'rolling' is not one of normal, damping, tangential" in broken["plugin_rolling"].reason
+    assert "kind 'heat' is not one of normal, damping, tangential, rolling, twisting" in broken["plugin_heat"].reason
     assert "'energy' must name one or more of store, dissipate, supply" in broken["plugin_energy"].reason
     assert "with a normal part" in broken["bad_preset"].reason
     assert all(b.plugin == "parts_plugin" for b in plugin.broken)
@@ -282,3 +282,106 @@ def test_guide_part_plugin_installs_and_combines_with_builtin_parts(tmp_path):
     mass = 4.0 / 3.0 * math.pi * 0.025**3 * 2650.0
     zeta = contact["dashpot_coefficient"] / (2.0 * math.sqrt(mass * contact["normal_stiffness"]))
     assert summary["en"] == pytest.approx(math.exp(-zeta * math.pi / math.sqrt(1.0 - zeta**2)), rel=1e-4)
+
+
+# -- rolling and twisting resistance -----------------------------------------------------
+# One sphere (R = 10 mm, 2500 kg/m^3, E = 100 MPa: a soft contact, so the time step is
+# long) on a plane under gravity, Hertz + Tsuji (e = 0.5) + Mindlin (mu = 0.5, no slip
+# here), released at zero overlap. Fn averages m g from the first bounce on (the vertical
+# momentum comes back to zero), so a couple linear in Fn acts on average as with m g.
+ROLLING_SCENE = """
+[materials.m]
+youngs_modulus = 1e8
+poisson_ratio = 0.3
+density = 2500.0
+
+[contact]
+normal = "hertz"
+damping = "tsuji"
+tangential = "mindlin"
+friction = 0.5
+restitution = 0.5
+{contact}
+
+[[walls]]
+point = [0.0, 0.0, 0.0]
+normal = [0.0, 0.0, 1.0]
+material = "m"
+
+[[particles]]
+position = [0.0, 0.0, 0.01]
+velocity = {velocity}
+angular_velocity = {spin}
+radius = 0.01
+material = "m"
+
+[run]
+stop = "time"
+end_time = {end_time!r}
+gravity = {gravity}
+"""
+RADIUS, DENSITY, GRAVITY = 0.01, 2500.0, 9.81
+MASS = 4.0 / 3.0 * np.pi * RADIUS**3 * DENSITY
+
+
+def rolling_run(tmp_path, contact, velocity=(0.0, 0.0, 0.0), spin=(0.0, 0.0, 0.0), end_time=0.1, slope_deg=0.0):
+    slope = np.radians(slope_deg)  # an incline: gravity tilted about y, down the slope along +x
+    gravity = [float(GRAVITY * np.sin(slope)), 0.0, float(-GRAVITY * np.cos(slope))]
+    path = tmp_path / f"scene{len(list(tmp_path.iterdir()))}.toml"
+    path.write_text(ROLLING_SCENE.format(contact=contact, velocity=[float(v) for v in velocity],
+                                         spin=[float(w) for w in spin], end_time=float(end_time), gravity=gravity))
+    return simulation.Simulation(scenario.load_scene(path, [])).run()
+
+
+def test_constant_rolling_torque_stops_a_rolling_sphere_at_the_analytic_distance(tmp_path):
+    # Rolling without slip, v = w R, under the couple mu_r R Fn: (m + I/R^2) dv/dt = -mu_r m g,
+    # a = 5/7 mu_r g, so it stops after v0^2 / (2 a) = 7 v0^2 / (10 mu_r g) (Ai et al. 2011, model A)
+    mu_r, v0 = 0.1, 0.1
+    stop_time = v0 / (5.0 / 7.0 * mu_r * GRAVITY)
+    result = rolling_run(tmp_path, f'rolling = "constant_torque"\nrolling_friction = {mu_r}',
+                         velocity=(v0, 0.0, 0.0), spin=(0.0, v0 / RADIUS, 0.0), end_time=1.4 * stop_time)
+    distance = 7.0 * v0**2 / (10.0 * mu_r * GRAVITY)
+    assert result.position[0, 0] == pytest.approx(distance, rel=0.01)
+    assert abs(result.velocity[0, 0]) < 0.01 * v0  # at rest, to the couple's chatter
+
+
+@pytest.mark.parametrize("factor", [0.8, 1.25])
+def test_epsd_holds_a_sphere_below_the_angle_its_rolling_friction_allows(tmp_path, factor):
+    # On a slope theta a sphere held by friction needs the couple m g R sin(theta) about its
+    # contact point: EPSD gives at most mu_r R m g cos(theta), so it holds for
+    # tan(theta) < mu_r and rolls above, with dv/dt = 5/7 g (sin(theta) - mu_r cos(theta))
+    # (Ai et al. 2011, model C). Flight during the landing (~20 ms of bounces, no friction)
+    # adds g sin(theta) dt, so the acceleration is measured from 40 ms on.
+    mu_r = 0.1
+    theta = np.radians(factor * np.degrees(np.arctan(mu_r)))
+    contact = f'rolling = "epsd"\nrolling_friction = {mu_r}'
+    if factor < 1.0:
+        # held: the rolling spring's damped swing (eta_r = 0.3) has died out by 120 ms, and
+        # then it does not creep: 0.1 micrometre in the next 120 ms, where a rolling sphere
+        # would go 5/7 g (sin(theta) - ...) t^2 / 2, millimetres
+        earlier = rolling_run(tmp_path, contact, end_time=0.12, slope_deg=np.degrees(theta))
+        result = rolling_run(tmp_path, contact, end_time=0.24, slope_deg=np.degrees(theta))
+        assert abs(result.position[0, 0] - earlier.position[0, 0]) < 1e-7
+        assert abs(result.velocity[0, 0]) < 1e-6
+    else:
+        earlier = rolling_run(tmp_path, contact, end_time=0.04, slope_deg=np.degrees(theta))
+        result = rolling_run(tmp_path, contact, end_time=0.1, slope_deg=np.degrees(theta))
+        acceleration = (result.velocity[0, 0] - earlier.velocity[0, 0]) / 0.06
+        assert acceleration == pytest.approx(5.0 / 7.0 * GRAVITY * (np.sin(theta) - mu_r * np.cos(theta)), rel=0.01)
+
+
+def test_marshall_twisting_stops_a_spinning_sphere_in_the_analytic_time(tmp_path):
+    # Spinning about the normal, the contact slides in torsion under the couple
+    # 2/3 mu Fn a (Hertz disc a = sqrt(R delta), delta = (m g / K)^(2/3), Fn = m g at rest):
+    # dw/dt = -M/I. The landing (bounces end after ~20 ms at e = 0.5) delays the decay,
+    # so the clock starts at t1 = 25 ms: w must reach 0 at t1 + w(t1) I / M, within 1 %.
+    mu, w0, t1 = 0.5, 1.0, 0.025
+    effective_modulus = 1e8 / (2.0 * (1.0 - 0.3**2))
+    overlap = (MASS * GRAVITY / (4.0 / 3.0 * effective_modulus * np.sqrt(RADIUS))) ** (2.0 / 3.0)
+    moment = 2.0 / 3.0 * mu * MASS * GRAVITY * np.sqrt(RADIUS * overlap)
+    inertia = 0.4 * MASS * RADIUS**2
+    contact = 'twisting = "marshall"'
+    spin_at_t1 = rolling_run(tmp_path, contact, spin=(0.0, 0.0, w0), end_time=t1).angular_velocity[0, 2]
+    stop = t1 + spin_at_t1 * inertia / moment
+    assert rolling_run(tmp_path, contact, spin=(0.0, 0.0, w0), end_time=0.99 * stop).angular_velocity[0, 2] \
+        == pytest.approx(0.01 * (stop - t1) * moment / inertia, rel=0.01, abs=0.01 * w0)

@@ -9,9 +9,9 @@ from minidem.hookspecs import hookimpl
 
 @hookimpl
 def minidem_register_laws(registry):
-    from minidem.builtin_laws import hertz, linear, parts
+    from minidem.builtin_laws import hertz, linear, parts, rolling
 
     for law in linear.LAWS + hertz.LAWS:
         registry.add(law)
-    for part in parts.PARTS:
+    for part in parts.PARTS + rolling.PARTS:
         registry.add(part)
