@@ -173,7 +173,7 @@ class _progress_bar:
 
 
 def command_laws(args) -> int:
-    from minidem import laws
+    from minidem.contact import laws
 
     registry = laws.registry()
     if args.json:
@@ -348,7 +348,7 @@ class _PipeClosedSink:
 
 
 def main(argv=None) -> int:
-    from minidem.laws import LawError
+    from minidem.contact.laws import LawError
     from minidem.scene.scenario import ScenarioError
     from minidem.engine.simulation import RunFailure
 

@@ -18,7 +18,10 @@ import numpy as np
 import pytest
 
 from conftest import OBLIQUE, impact_summary, run_cli
-from minidem import analysis, compose, laws, scenario, simulation
+from minidem.contact import compose, laws
+from minidem.engine import simulation
+from minidem.results import analysis
+from minidem.scene import scenario
 
 
 def final_state(law: str, angle_deg: float, **settings):
@@ -155,7 +158,7 @@ def test_bad_combinations_exit_2_with_the_parts_named(tmp_path, contact, expecte
 PLUGIN = '''
 import numba
 from minidem import hookimpl
-from minidem.laws import ContactPart, Preset
+from minidem.contact.laws import ContactPart, Preset
 
 
 @numba.njit

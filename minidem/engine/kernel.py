@@ -68,7 +68,7 @@ from minidem.geometry.primitives import (
 from minidem.engine.integrate import drift, kick
 
 # >>> specialisation block (rewritten by minidem.engine.simulation.compile_kernel)
-from minidem.builtin_laws.linear import linear_force as law_force  # noqa: E402
+from minidem.contact.builtin_laws.linear import linear_force as law_force  # noqa: E402
 
 SPIN = True
 COUPLES = False

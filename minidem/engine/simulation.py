@@ -28,7 +28,8 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from minidem import __version__, laws
+from minidem import __version__
+from minidem.contact import laws
 from minidem.engine import integrate, kernel
 from minidem.geometry import neighbours, primitives
 from minidem.scene.scenario import Scene, ScenarioError
@@ -155,7 +156,7 @@ _STABLE_PACKAGES = {"numpy", "numba", "math", "cmath", "builtins", "llvmlite"}
 def _force_dependencies(force) -> tuple[str, tuple]:
     """Hash of the source of the law's force function and of everything it calls, followed
     transitively through jitted and plain functions, closures and modules of any package
-    (a helper in a subpackage, minidem.builtin_laws.common, another distribution), with
+    (a helper in a subpackage, minidem.contact.builtin_laws.common, another distribution), with
     the module-level constants they read (numba freezes those into the machine code);
     and the numba dispatchers met on the way. Read once per process per law, like the
     engine's sources (_engine_hash).
@@ -1081,7 +1082,7 @@ def _numba_cause(exc: Exception) -> str:
     return ("; ".join(message[:2]) or lines[0]) + where
 
 
-# the argument types the kernel passes a law's force function (minidem.laws.FORCE_ARGUMENTS)
+# the argument types the kernel passes a law's force function (minidem.contact.laws.FORCE_ARGUMENTS)
 _FORCE_SIGNATURE = (numba.types.Array(numba.types.float64, 1, "C"), *(numba.types.float64,) * 5,
                     numba.types.UniTuple(numba.types.float64, 3), numba.types.UniTuple(numba.types.float64, 3),
                     numba.types.Array(numba.types.float64, 1, "C"))

@@ -461,7 +461,7 @@ def _contact_law(contact: dict, material_index: dict, raw_materials: dict, error
     """(law name, its parameters, per-material-pair parameters) of a [contact] table: a
     law or preset by name, a combination of parts, or a preset with some parts replaced.
     Problems go to ``errors``; the law name is None when there is no usable law."""
-    from minidem import laws
+    from minidem.contact import laws
 
     values = _check_table(contact, SCHEMA["contact"][1], "contact", errors, open_keys=True)
     registry = laws.registry()
@@ -607,7 +607,7 @@ def load_scene(path: str | Path, overrides: list[str] = (), output_directory: st
 
 
 def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -> Scene:
-    from minidem import laws
+    from minidem.contact import laws
 
     errors = _Errors(source)
     for section in data:

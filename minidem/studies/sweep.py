@@ -159,7 +159,7 @@ def code_fingerprint(law_names: tuple[str, ...]) -> str:
     import numpy
 
     import minidem
-    from minidem import laws
+    from minidem.contact import laws
     from minidem.engine import simulation
 
     digest = hashlib.sha256()

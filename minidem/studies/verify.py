@@ -16,7 +16,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from minidem import laws
+from minidem.contact import laws
 from minidem.results import analysis
 from minidem.scene import scenario
 from minidem.engine import simulation

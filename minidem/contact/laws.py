@@ -30,7 +30,7 @@ from typing import Any, Callable, Mapping
 
 import pluggy
 
-from minidem import hookspecs
+from minidem.contact import hookspecs
 
 ENTRY_POINT_GROUP = hookspecs.PROJECT_NAME
 _NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_]*$")
@@ -489,7 +489,7 @@ class LawRegistry:
         missing kind: no part of that kind), composed and compiled once per process.
         Raises LawError for an unknown kind or part and for a combination the parts'
         declarations refuse (no normal part, a requirement not met)."""
-        from minidem import compose
+        from minidem.contact import compose
 
         unknown = sorted(set(choice) - set(KINDS))
         if unknown:
@@ -637,7 +637,7 @@ class LawRegistry:
 
 def _declaration_problem(law) -> str | None:
     if not isinstance(law, ContactLaw):
-        return f"registry.add() expects a minidem.laws.ContactLaw, got {type(law).__name__}"
+        return f"registry.add() expects a minidem.contact.ContactLaw (or ContactPart, Preset), got {type(law).__name__}"
     if not isinstance(law.name, str) or not _NAME_PATTERN.match(law.name):
         return f"law name {law.name!r} is not a lower-case identifier"
     if not isinstance(law.description, str) or not law.description.strip():
@@ -645,7 +645,7 @@ def _declaration_problem(law) -> str | None:
     for field, kind in (("parameters", Parameter), ("history", HistorySlot)):
         items = getattr(law, field)
         if not isinstance(items, tuple) or not all(isinstance(x, kind) for x in items):
-            return f"'{field}' must be a tuple of minidem.laws.{kind.__name__}"
+            return f"'{field}' must be a tuple of minidem.contact.{kind.__name__}"
     names = [p.name for p in law.parameters]
     if len(set(names)) != len(names):
         return "parameter names are not unique"
@@ -679,7 +679,7 @@ def _part_problem(part) -> str | None:
     for field, kind in (("parameters", Parameter), ("history", HistorySlot)):
         items = getattr(part, field)
         if not isinstance(items, tuple) or not all(isinstance(x, kind) for x in items):
-            return f"'{field}' must be a tuple of minidem.laws.{kind.__name__}"
+            return f"'{field}' must be a tuple of minidem.contact.{kind.__name__}"
     names = [p.name for p in part.parameters]
     if len(set(names)) != len(names):
         return "parameter names are not unique"
@@ -817,7 +817,7 @@ def _one_line(exc: BaseException) -> str:
     frames = traceback.extract_tb(exc.__traceback__) if exc.__traceback__ else []
     own = [f for f in frames if not f.filename.startswith("<frozen")
            and not any(part in f.filename for part in (f"{os.sep}pluggy{os.sep}", f"{os.sep}importlib{os.sep}",
-                                                        f"{os.sep}minidem{os.sep}laws.py"))]
+                                                        f"{os.sep}minidem{os.sep}contact{os.sep}laws.py"))]
     if isinstance(exc, SyntaxError) and exc.filename:
         where = f" (at {exc.filename}:{exc.lineno})"
     elif own:

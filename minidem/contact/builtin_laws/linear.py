@@ -4,8 +4,8 @@ import math
 
 import numba
 
-from minidem.builtin_laws.common import FRICTION, RESTITUTION, incremental_spring, linear_damping_ratio
-from minidem.laws import ContactLaw, HistorySlot, Parameter, hertz_contact_time
+from minidem.contact.builtin_laws.common import FRICTION, RESTITUTION, incremental_spring, linear_damping_ratio
+from minidem.contact.laws import ContactLaw, HistorySlot, Parameter, hertz_contact_time
 
 # indices into the constants row (order of LS.constants)
 KN, KT, MU, ZETA = 0, 1, 2, 3

@@ -10,8 +10,8 @@ import math
 
 import numba
 
-from minidem.builtin_laws.common import FRICTION, coulomb_cap, norm3
-from minidem.laws import ContactPart, HistorySlot, Parameter
+from minidem.contact.builtin_laws.common import FRICTION, coulomb_cap, norm3
+from minidem.contact.laws import ContactPart, HistorySlot, Parameter
 
 AI = "Ai, Chen, Rotter & Ooi (2011), Powder Technol. 206, 269-282"
 ROLLING_FRICTION = Parameter("rolling_friction", None, "-", "coefficient of rolling resistance mu_r: the "

@@ -1,7 +1,7 @@
 """minidem's built-in contact-model parts (normal, damping, tangential).
 
 Each part is one declaration and one compiled function with the signature of its kind
-(``minidem.laws.PART_ARGUMENTS``). The paper's laws (``hertz.py``, ``linear.py``) are
+(``minidem.contact.laws.PART_ARGUMENTS``). The paper's laws (``hertz.py``, ``linear.py``) are
 the same physics written as single laws; two combinations reproduce two of them:
 
     hooke + viscous + linear_history   = ls  (bit for bit: the same operations in order)
@@ -15,21 +15,21 @@ import math
 
 import numba
 
-from minidem.builtin_laws.common import (
+from minidem.contact.builtin_laws.common import (
     FRICTION,
     RESTITUTION,
     hertz_damping_factor,
     incremental_spring,
     linear_damping_ratio,
 )
-from minidem.builtin_laws.linear import (
+from minidem.contact.builtin_laws.linear import (
     CALIBRATION_SPEED,
     NORMAL_STIFFNESS,
     STIFFNESS_RATIO,
     TANGENTIAL_STIFFNESS,
     linear_normal_stiffness,
 )
-from minidem.laws import ContactPart, HistorySlot, hertz_contact_time
+from minidem.contact.laws import ContactPart, HistorySlot, hertz_contact_time
 
 PAPER = "Thornton, Cummins & Cleary (2011)"
 
