@@ -175,6 +175,12 @@ def short_damping(constants, effective_radius):
     return 0.0
 
 
+@numba.njit
+def wrong_damping(constants, effective_radius, effective_mass, normal_overlap, normal_velocity, normal_stiffness,
+                  elastic_normal_force):
+    return constants[0] * normal_velocity, 0.0  # two numbers where the kind returns one
+
+
 def part(name, function=stiff_normal, kind="normal", **changes):
     fields = dict(name=name, kind=kind, description="a test part", parameters=(), constants=("k",), history=(),
                   prepare=lambda pair, params, prepared: {"k": 1e6}, function=function, provides=("linear",),
@@ -188,6 +194,7 @@ def minidem_register_laws(registry):
     registry.add(part("plugin_spring"))
     registry.add(part("plugin_plain", plain_normal))
     registry.add(part("plugin_short", short_damping, kind="damping"))
+    registry.add(part("plugin_wrong", wrong_damping, kind="damping"))
     registry.add(part("hertz"))
     registry.add(part("plugin_heat", kind="heat"))
     registry.add(part("plugin_energy", energy=("create",)))
@@ -450,3 +457,18 @@ def test_couples_conserve_angular_momentum_between_two_spheres(tmp_path):
     assert during.contacts == 1 and after.contacts == 0  # the couples did act, and the pair has parted
     # the couples took spin: without them, the twist about the line of centres would pass unchanged
     assert not np.allclose(after.angular_velocity, scene.angular_velocity, rtol=1e-3)
+
+
+def test_a_part_that_breaks_the_kernel_is_named_with_its_file(plugin):
+    # registered (its arguments are right) but it returns two numbers where a damping part
+    # returns one: the kernel does not compile, and the message names the part, not the
+    # generated force or the kernel
+    scene = scenario.load_scene(OBLIQUE, ['contact.law="hertz+tsuji+mindlin"'])
+    scene.law_name = "hertz+plugin_wrong+mindlin"
+    scene.law_parameters = {"friction": 0.1}
+    with pytest.raises(laws.LawError) as info:
+        simulation.Simulation(scene, registry=plugin).run()
+    message = str(info.value)
+    assert "law 'hertz+plugin_wrong+mindlin' from plugin 'builtin, parts_plugin'" in message
+    assert "damping part 'plugin_wrong': its function wrong_damping in" in message
+    assert "parts_plugin.py, line" in message and "must return a number (the dashpot's force)" in message

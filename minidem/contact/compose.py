@@ -130,6 +130,7 @@ def compose(parts: tuple[laws.ContactPart, ...], origins, defaults: Mapping[str,
         reference="; ".join(dict.fromkeys(p.reference for p in parts if p.reference)),
         stiffness=stiffness,
         couples=couples,
+        parts=tuple(parts),
     )
 
 

@@ -185,6 +185,7 @@ class ContactLaw:
     reference: str = ""
     stiffness: Callable | None = None
     couples: bool = False
+    parts: tuple = ()  # a combination's ContactParts (set by minidem.contact.compose); () for a law
 
     @property
     def history_size(self) -> int:
@@ -663,6 +664,8 @@ def _declaration_problem(law) -> str | None:
     for hook in ("contact_time", "stiffness"):
         if getattr(law, hook) is not None and not callable(getattr(law, hook)):
             return f"'{hook}' must be a function or None, got {type(getattr(law, hook)).__name__}"
+    if law.parts != ():
+        return "'parts' is minidem's own (the parts of a combination it composed); leave it empty"
     if not isinstance(law.couples, bool):
         return f"'couples' must be True or False, got {law.couples!r}"
     return _compiled_function_problem(law.force, "force", law.force_arguments)

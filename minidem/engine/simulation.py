@@ -1088,26 +1088,60 @@ _FORCE_SIGNATURE = (numba.types.Array(numba.types.float64, 1, "C"), *(numba.type
                     numba.types.Array(numba.types.float64, 1, "C"))
 
 
-def force_problem(law: laws.ContactLaw, exc: Exception) -> str:
-    """Why a law's force function broke the kernel's compilation: compiled alone with the
-    engine's argument types, so the message names the law's function and file (and a
-    wrong return value), not the kernel line that called it."""
-    func = law.force.py_func
+_ROW, _FLOAT, _VECTOR = (numba.types.Array(numba.types.float64, 1, "C"), numba.types.float64,
+                         numba.types.UniTuple(numba.types.float64, 3))
+# the argument types a part's function is called with (minidem.contact.laws.PART_ARGUMENTS)
+# and how many numbers it returns (0: one number)
+_PART_SIGNATURES = {
+    "normal": ((_ROW, *(_FLOAT,) * 4, _ROW), 3),
+    "damping": ((_ROW, *(_FLOAT,) * 6), 0),
+    "tangential": ((_ROW, *(_FLOAT,) * 7, _VECTOR, _VECTOR, _ROW), 3),
+    "rolling": ((_ROW, *(_FLOAT,) * 6, _VECTOR, _VECTOR, _ROW), 3),
+    "twisting": ((_ROW, *(_FLOAT,) * 8, _ROW), 0),
+}
+
+
+def _compiled_alone(function, signature, count: int, what: str, shape: str) -> str | None:
+    """Why ``function`` does not compile with ``signature`` or does not return ``count``
+    numbers (0: one number), naming its file and line; None when it is fine."""
+    func = function.py_func
     try:
         _, line = inspect.getsourcelines(func)
         where = f"{func.__qualname__} in {inspect.getsourcefile(func)}, line {line}"
     except (OSError, TypeError):
         where = func.__qualname__
     try:
-        law.force.compile(_FORCE_SIGNATURE)
+        function.compile(signature)
     except numba.core.errors.NumbaError as alone:
-        return f"its force function {where} does not compile: {_numba_cause(alone)}"
-    returned = law.force.overloads[_FORCE_SIGNATURE].signature.return_type
-    if not (isinstance(returned, numba.types.BaseTuple) and len(returned) == 4
-            and all(isinstance(t, (numba.types.Float, numba.types.Integer)) for t in returned)):
-        return (f"its force function {where} must return 4 numbers (fn, ftx, fty, ftz), "
-                f"it returns {returned}")
-    return f"its force function {where} does not compile in the engine: {_numba_cause(exc)}"
+        return f"its {what} {where} does not compile: {_numba_cause(alone)}"
+    returned = function.overloads[signature].signature.return_type
+    number = (numba.types.Float, numba.types.Integer)
+    if count == 0:
+        if not isinstance(returned, number):
+            return f"its {what} {where} must return a number ({shape}), it returns {returned}"
+    elif not (isinstance(returned, numba.types.BaseTuple) and len(returned) == count
+              and all(isinstance(t, number) for t in returned)):
+        return f"its {what} {where} must return {count} numbers ({shape}), it returns {returned}"
+    return None
+
+
+def force_problem(law: laws.ContactLaw, exc: Exception) -> str:
+    """Why a law's force function broke the kernel's compilation: compiled alone with the
+    engine's argument types (each part of a combination with its kind's), so the message
+    names the law's or the part's function and file (and a wrong return value), not the
+    kernel line that called it."""
+    shapes = {"normal": "elastic force, stiffness, contact radius", "damping": "the dashpot's force",
+              "tangential": "ftx, fty, ftz", "rolling": "the couple mx, my, mz", "twisting": "the couple about n"}
+    for part in law.parts:
+        signature, count = _PART_SIGNATURES[part.kind]
+        why = _compiled_alone(part.function, signature, count, "function", shapes[part.kind])
+        if why:
+            return f"{part.kind} part '{part.name}': {why}"
+    if not law.parts:
+        why = _compiled_alone(law.force, _FORCE_SIGNATURE, 4, "force function", "fn, ftx, fty, ftz")
+        if why:
+            return why
+    return f"its force function does not compile in the engine: {_numba_cause(exc)}"
 
 
 def run_scene(scene: Scene, progress=None) -> RunResult:
