@@ -641,34 +641,43 @@ def _declaration_problem(law) -> str | None:
         return f"registry.add() expects a minidem.contact.ContactLaw (or ContactPart, Preset), got {type(law).__name__}"
     if not isinstance(law.name, str) or not _NAME_PATTERN.match(law.name):
         return f"law name {law.name!r} is not a lower-case identifier"
-    if not isinstance(law.description, str) or not law.description.strip():
-        return "description must be a non-empty string"
-    for field, kind in (("parameters", Parameter), ("history", HistorySlot)):
-        items = getattr(law, field)
-        if not isinstance(items, tuple) or not all(isinstance(x, kind) for x in items):
-            return f"'{field}' must be a tuple of minidem.contact.{kind.__name__}"
-    names = [p.name for p in law.parameters]
-    if len(set(names)) != len(names):
-        return "parameter names are not unique"
-    for p in law.parameters:
-        if p.default is not None and p.check(p.default):
-            return f"default of parameter '{p.name}' {p.check(p.default)}"
-    if not isinstance(law.constants, tuple) or not all(isinstance(c, str) for c in law.constants):
-        return "'constants' must be a tuple of names"
+    problem = _shared_declaration_problem(law)
+    if problem is not None:
+        return problem
     if not isinstance(law.aliases, tuple) or not all(
             isinstance(a, str) and _ALIAS_PATTERN.match(a.lower()) for a in law.aliases):
         return (f"'aliases' must be a tuple of names (letters, digits, '_' and '-', starting with a letter), "
                 f"got {law.aliases!r}")
-    if not callable(law.prepare):
-        return "'prepare' is not callable"
-    for hook in ("contact_time", "stiffness"):
-        if getattr(law, hook) is not None and not callable(getattr(law, hook)):
-            return f"'{hook}' must be a function or None, got {type(getattr(law, hook)).__name__}"
     if law.parts != ():
         return "'parts' is minidem's own (the parts of a combination it composed); leave it empty"
     if not isinstance(law.couples, bool):
         return f"'couples' must be True or False, got {law.couples!r}"
     return _compiled_function_problem(law.force, "force", law.force_arguments)
+
+
+def _shared_declaration_problem(item) -> str | None:
+    """The checks a law and a part share: description, parameters (unique names, valid
+    defaults), history slots, constants, and that the Python hooks are callable."""
+    if not isinstance(item.description, str) or not item.description.strip():
+        return "description must be a non-empty string"
+    for field, kind in (("parameters", Parameter), ("history", HistorySlot)):
+        items = getattr(item, field)
+        if not isinstance(items, tuple) or not all(isinstance(x, kind) for x in items):
+            return f"'{field}' must be a tuple of minidem.contact.{kind.__name__}"
+    names = [p.name for p in item.parameters]
+    if len(set(names)) != len(names):
+        return "parameter names are not unique"
+    for p in item.parameters:
+        if p.default is not None and p.check(p.default):
+            return f"default of parameter '{p.name}' {p.check(p.default)}"
+    if not isinstance(item.constants, tuple) or not all(isinstance(c, str) for c in item.constants):
+        return "'constants' must be a tuple of names"
+    if not callable(item.prepare):
+        return "'prepare' is not callable"
+    for hook in ("contact_time", "stiffness"):
+        if getattr(item, hook) is not None and not callable(getattr(item, hook)):
+            return f"'{hook}' must be a function or None, got {type(getattr(item, hook)).__name__}"
+    return None
 
 
 def _part_problem(part) -> str | None:
@@ -677,20 +686,9 @@ def _part_problem(part) -> str | None:
         return f"part name {part.name!r} is not a lower-case identifier (and not 'none')"
     if part.kind not in KINDS:
         return f"kind {part.kind!r} is not one of {', '.join(KINDS)}"
-    if not isinstance(part.description, str) or not part.description.strip():
-        return "description must be a non-empty string"
-    for field, kind in (("parameters", Parameter), ("history", HistorySlot)):
-        items = getattr(part, field)
-        if not isinstance(items, tuple) or not all(isinstance(x, kind) for x in items):
-            return f"'{field}' must be a tuple of minidem.contact.{kind.__name__}"
-    names = [p.name for p in part.parameters]
-    if len(set(names)) != len(names):
-        return "parameter names are not unique"
-    for p in part.parameters:
-        if p.default is not None and p.check(p.default):
-            return f"default of parameter '{p.name}' {p.check(p.default)}"
-    if not isinstance(part.constants, tuple) or not all(isinstance(c, str) for c in part.constants):
-        return "'constants' must be a tuple of names"
+    problem = _shared_declaration_problem(part)
+    if problem is not None:
+        return problem
     for field in ("energy", "provides", "requires"):
         value = getattr(part, field)
         if not isinstance(value, tuple) or not all(isinstance(x, str) for x in value):
@@ -701,11 +699,6 @@ def _part_problem(part) -> str | None:
         return f"'reach' must be a distance in m, >= 0 and finite, got {part.reach!r}"
     if part.reach > 0.0:
         return "'reach' > 0 (a part acting beyond touch) is not supported by this engine yet"
-    if not callable(part.prepare):
-        return "'prepare' is not callable"
-    for hook in ("contact_time", "stiffness"):
-        if getattr(part, hook) is not None and not callable(getattr(part, hook)):
-            return f"'{hook}' must be a function or None, got {type(getattr(part, hook)).__name__}"
     if part.kind == "normal" and part.contact_time is None:
         return "a normal part must declare contact_time (the automatic time step needs it)"
     return _compiled_function_problem(part.function, "function", PART_ARGUMENTS[part.kind])
