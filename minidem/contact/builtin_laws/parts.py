@@ -173,6 +173,11 @@ LINEAR_HISTORY = ContactPart(
 )
 
 
+def prepare_shear_and_friction(pair, params, prepared):
+    """8 G* (Mindlin's kt = 8 G* a) and mu: the constants of mindlin and of marshall twisting."""
+    return {"shear_modulus": 8.0 * pair.effective_shear_modulus, "friction": params["friction"]}
+
+
 @numba.njit(cache=True, inline="always")
 def mindlin_tangential(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
                        contact_radius, elastic_normal_force, normal_force, tangential_increment, tangential_velocity,
@@ -191,8 +196,7 @@ MINDLIN = ContactPart(
     parameters=(FRICTION,),
     constants=("shear_modulus", "friction"),
     history=_FORCE_SLOT,
-    prepare=lambda pair, params, prepared: {"shear_modulus": 8.0 * pair.effective_shear_modulus,
-                                            "friction": params["friction"]},
+    prepare=prepare_shear_and_friction,
     function=mindlin_tangential,
     energy=("store", "dissipate"),
     requires=("hertzian",),

@@ -11,6 +11,7 @@ import math
 import numba
 
 from minidem.contact.builtin_laws.common import FRICTION, coulomb_cap, norm3
+from minidem.contact.builtin_laws.parts import prepare_shear_and_friction
 from minidem.contact.laws import ContactPart, HistorySlot, Parameter
 
 AI = "Ai, Chen, Rotter & Ooi (2011), Powder Technol. 206, 269-282"
@@ -111,8 +112,7 @@ MARSHALL = ContactPart(
     parameters=(FRICTION,),
     constants=("shear_modulus", "friction"),
     history=(HistorySlot("twisting_moment", "the spring's couple about the normal on the first body (N m)"),),
-    prepare=lambda pair, params, prepared: {"shear_modulus": 8.0 * pair.effective_shear_modulus,
-                                            "friction": params["friction"]},
+    prepare=prepare_shear_and_friction,
     function=marshall_twisting,
     energy=("store", "dissipate"),
     requires=("hertzian",),
