@@ -27,7 +27,7 @@ from minidem.builtin_laws.common import (
 from minidem.laws import ContactLaw, HistorySlot, Parameter
 
 # indices into the constants row (the order of HERTZ_CONSTANTS)
-HERTZ_MODULUS, SHEAR_MODULUS, MU, DAMPING, KAPPA, REVERSAL_CHECK, SPECIAL_CASE = range(7)
+HERTZ_MODULUS, SHEAR_MODULUS, MU, DAMPING, KAPPA, REVERSAL_CHECK, SPECIAL_CASE, PARTIAL_SLIP_REVERSAL_CHECK = range(8)
 HERTZ_CONSTANTS = (
     "hertz_modulus",  # 4/3 E*, Pa: Fn = hertz_modulus sqrt(R*) d^1.5
     "shear_modulus",  # 8 G*, Pa: kt = 8 G* a, a = sqrt(R* d)
@@ -36,6 +36,7 @@ HERTZ_CONSTANTS = (
     "stiffness_ratio",  # kappa = 4 G*/E* (eq 10)
     "reversal_check",  # hmd only, see hmd_force
     "special_case",  # hmd only: reading of eq 24, see SPECIAL_* below
+    "partial_slip_reversal_check",  # hmd only: reversal in partial slip while Fn falls, see hmd_force
 )
 
 
@@ -48,6 +49,7 @@ def prepare_hertz(pair, params):
         "stiffness_ratio": pair.stiffness_ratio,
         "reversal_check": params.get("reversal_check", 1.0),
         "special_case": params.get("special_case", 0.0),
+        "partial_slip_reversal_check": params.get("partial_slip_reversal_check", 1.0),
     }
 
 
@@ -241,8 +243,26 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
         reversal_lag = previous_along / (previous_along - along)
         reversal_shift = mu * dfn * (reversal_lag - 0.5)
 
+    # A reversed increment in partial slip while Fn falls (issue 13, models.md "The
+    # reading that gives the paper's 4 %"): the new branch would start elastic (theta = 1)
+    # and unload at 8 G* a |dd|, slower than the Coulomb limit mu Fn shrinks (mu |dFn|),
+    # so its eq-22 theta would exceed 1. The current branch goes on under eq 21 with the
+    # actual increment until 8 G* a |dd| > mu |dFn|, and reverses there. At that crossing
+    # the old branch moves Ft by mu dFn a step (eq 21 with 8 G* a dd = mu dFn) and so does
+    # eq 23 move Ft*: the new reversal point is Ft at the start of the step plus the whole
+    # step's mu dFn, wherever in the step the crossing lay (reversal_shift = 0). Full slip
+    # (theta = 0) is the same test, made by reversal_check below.
+    direction = -1.0 if mode == UNLOADING else 1.0
+    holds_branch = False
+    if (constants[PARTIAL_SLIP_REVERSAL_CHECK] != 0.0 and dfn < 0.0 and not special and history[SLIDING] == 0.0
+            and direction * along < 0.0
+            and _hmd_theta(mode, force_along, ft_star, ft_2star, fn - dfn, mu) < 1.0):
+        reversal_shift = 0.0
+        holds_branch = stick_stiffness * abs(along) <= -mu * dfn
     stays_sliding = False
-    if history[SLIDING] != 0.0 and constants[REVERSAL_CHECK] != 0.0:
+    if holds_branch:
+        pass  # not admissible yet: no branch switch below
+    elif history[SLIDING] != 0.0 and constants[REVERSAL_CHECK] != 0.0:
         # While sliding, a reversed displacement starts unloading only when the elastic
         # trial force is back inside the Coulomb cone (the test LS and HM make); with
         # reversal_check = 0 the branch reverses the instant the displacement does.
@@ -466,7 +486,12 @@ HMD = _law(
                    "under eq 19 ends: 0 per step (eq 19 negated), 1 8 G* a |delta_t| > mu Fn, "
                    "2 |Ft - Ft0| > mu (Fn - Fn0), 3 8 G* a |delta_t - delta_t0| > mu (Fn - Fn0), "
                    "4 accumulated displacement deficit, 5 when Fn stops growing (see docs/laws.md)", low=0.0,
-                   high=5.0)),
+                   high=5.0),
+           _Choice("partial_slip_reversal_check", 1.0, "-", "1: while Fn decreases in partial slip "
+                   "(theta < 1), a reversed increment starts the new branch only once it is admissible, "
+                   "8 G* a |d(delta_t)| > mu |dFn|, the current branch going on under eq 21 until then "
+                   "(the reading that gives the paper's 4 % at 1 deg); 0: at once, when the increment "
+                   "reverses (minidem before issue 13; see docs/laws.md)", low=0.0, high=1.0)),
 )
 HM = _law("hm", "Hertz + Mindlin no-slip, incremental Ft += 8 G* a dd (eq 39)", hm_force, _FORCE_SLOT,
           "Thornton, Cummins & Cleary (2011) section 3.3", aliases=("hertz_mindlin",))
