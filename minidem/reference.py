@@ -47,6 +47,11 @@ choices" once written, which the engine follows):
   eq 19 stops holding (default), 1-3 and 5 at an event where the reading's end condition
   (``_Law.special_margin``) reaches zero, 4 where the displacement deficit D reaches zero
   (docs/laws.md "HMD implementation choices", item 9);
+- HMD's branch reversal (issue 13, ``Impact.partial_slip_reversal_check``, as the engine's
+  parameter): the branch of direction D (+1 load/reload, -1 unload) reverses where D vs
+  turns negative, except in partial slip (no special state) while Fn falls, where it
+  reverses only once the new elastic branch is admissible: h = 8 G* a D vs - mu Fn'
+  (divided by 2 E* a: kappa D v - mu u) crossing zero downwards; with 0, at D vs = 0;
 - a full reversal at Ft = -Ft* needs Ft* > 0 (eq 23 drives Ft* below zero once Fn has
   fallen enough, and -Ft* is then no point of the mirrored curve; the engine's guard):
   it happens where the state enters {Ft <= -Ft*, Ft* > 0}, located by the continuous
