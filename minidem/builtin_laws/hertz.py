@@ -126,6 +126,77 @@ def _hmd_theta(mode, force_along, ft_star, ft_2star, fn, mu):
 
 
 @numba.njit(cache=True, inline="always")
+def _hmd_branch_step(mode, force_along, ft_star_end, ft_2star_end, fn, dfn, mu, elastic_increment):
+    """Eqs 21-23 over one step on the current branch, (Ft at the end, theta at the middle).
+
+    Write a branch's eq 22 as theta^3 = Z / (c mu Fn): c = 1 and Z = mu Fn - Ft loading,
+    c = 2 and Z = 2 mu Fn - (Ft* - Ft) unloading, 2 mu Fn - (Ft - Ft**) reloading. With
+    eqs 21 and 23 in rate form, Z' = -theta h, h = 8 G* a D vt - mu Fn' (D = -1 unloading,
+    +1 otherwise: the admissibility function of a reversal), so Z^(2/3) obeys
+
+        d(Z^(2/3))/dt = -(2/3) h / (c mu Fn)^(1/3)
+
+    whose right-hand side does not depend on the force at all: the midpoint rule on it is a
+    quadrature, second order in dt up to and including the arrival at theta = 0 (the
+    Coulomb limit, where Ft itself behaves as (t_c - t)^(3/2) and a midpoint step on Ft
+    loses an order). Z <= 0 at the end of the step is the Coulomb limit reached inside it,
+    and the force is then exactly on it, wherever in the step that happened."""
+    fn_start = fn - dfn
+    fn_mid = fn - 0.5 * dfn
+    if fn_start <= 0.0 or fn_mid <= 0.0 or fn <= 0.0:
+        # no contact area at the start: eq 21 with theta = 1 (the cap of the caller acts)
+        return force_along + elastic_increment, 1.0
+    if mode == UNLOADING:
+        reach = 2.0
+        distance = (ft_star_end - mu * dfn) - force_along
+        direction = -1.0
+    elif mode == RELOADING:
+        reach = 2.0
+        distance = force_along - (ft_2star_end + mu * dfn)
+        direction = 1.0
+    else:
+        reach = 1.0
+        distance = force_along
+        direction = 1.0
+    if distance <= 0.0:
+        # the force is at or ahead of the branch's reversal point: eq 22 clipped gives
+        # theta = 1, eq 21 is elastic, as long as it stays there (a branch that began
+        # where the Coulomb limit shrinks faster than the elastic force, which the
+        # admissibility test of partial_slip_reversal_check = 1 prevents)
+        elastic_end = force_along + elastic_increment
+        if mode == UNLOADING:
+            distance_elastic = ft_star_end - elastic_end
+        elif mode == RELOADING:
+            distance_elastic = elastic_end - ft_2star_end
+        else:
+            distance_elastic = elastic_end
+        if distance_elastic <= 0.0:
+            return elastic_end, 1.0
+    reach_start = reach * mu * fn_start
+    z_start = min(max(reach_start - distance, 0.0), reach_start)
+    s_start = z_start ** (2.0 / 3.0)
+    # h over the step: 8 G* a(mid) D dd - mu dFn
+    admissibility = direction * elastic_increment - mu * dfn
+    scale_mid = (reach * mu * fn_mid) ** (1.0 / 3.0)
+    s_end = s_start - (2.0 / 3.0) * admissibility / scale_mid
+    reach_end = reach * mu * fn
+    z_end = max(s_end, 0.0) ** 1.5
+    if z_end > reach_end:
+        # theta reaches 1 within the step (the force overtakes the reversal point, Ft*
+        # falling faster under eq 23 than Ft does): eq 22 clipped, eq 21 elastic. Its rate
+        # equals the branch's at theta = 1, so the whole step is taken elastic.
+        return force_along + elastic_increment, 1.0
+    distance_end = reach_end - z_end
+    s_mid = max(0.5 * (s_start + s_end), 0.0)
+    theta = min(math.sqrt(s_mid) / scale_mid, 1.0)
+    if mode == UNLOADING:
+        return ft_star_end - distance_end, theta
+    if mode == RELOADING:
+        return ft_2star_end + distance_end, theta
+    return distance_end, theta
+
+
+@numba.njit(cache=True, inline="always")
 def _meets_mirrored_curve(force_start, star_start, force_end, star_end):
     """True when, with Ft and Ft* linear over the step, the unloading branch reaches the
     mirrored virgin curve at some instant: Ft <= -Ft* while Ft* > 0 (a full reversal).
@@ -285,23 +356,15 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
         force_along = limit
         cross_x, cross_y, cross_z = 0.0, 0.0, 0.0
     else:
-        branch_sign = -1.0 if mode == UNLOADING else 1.0
-        if special:
-            theta = 1.0  # eqs 19 and 24: increments below mu dFn cause no slip
-        else:
-            # eq 21 integrated by the midpoint rule: theta from a half-step predictor
-            # (eqs 22a-c evaluated at the middle of the step), so the law is second
-            # order in dt like the others instead of first
-            theta = _hmd_theta(mode, force_along, ft_star, ft_2star, fn - dfn, mu)
-            predicted = force_along + 0.5 * (stick_stiffness * theta * along
-                                             + branch_sign * mu * dfn * (1.0 - theta))
-            theta = _hmd_theta(mode, predicted, ft_star + 0.5 * mu * dfn, ft_2star - 0.5 * mu * dfn,
-                               fn - 0.5 * dfn, mu)
         force_start, star_start = force_along, ft_star
         ft_star += mu * dfn  # eq 23
         ft_2star -= mu * dfn
-        # eq 21: dFt = 8 G* a theta dd (+/-) mu dFn (1 - theta)
-        force_along += stick_stiffness * theta * along + branch_sign * mu * dfn * (1.0 - theta)
+        if special:
+            theta = 1.0  # eqs 19 and 24: increments below mu dFn cause no slip
+            force_along += stick_stiffness * along  # eq 21 with theta = 1
+        else:
+            force_along, theta = _hmd_branch_step(mode, force_along, ft_star, ft_2star, fn, dfn, mu,
+                                                  stick_stiffness * along)
         tangent_stiffness = stick_stiffness * theta
         cross_x += tangent_stiffness * (ddx - along * ax)
         cross_y += tangent_stiffness * (ddy - along * ay)
