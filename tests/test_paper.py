@@ -277,9 +277,9 @@ PAPER_STEPS = int(scenario.read_toml(ROOT / "scenarios" / "paper" / "figs05-07_h
     ("hmd", 1.0), ("hmd", 5.0),
     ("hmd", 20.0), ("ls", 5.0), ("hm", 10.0), ("lth", 15.0)])
 def test_halving_dt_changes_rebound_by_less_than_1e_4(law, angle):
-    """Convergence in dt at the paper scenarios' steps_per_contact (HMD converges at first
-    order: its branch switches happen at step boundaries; the default 2000 steps give
-    1.5e-4 for HMD, so scenarios/paper/ use 4000)."""
+    """Convergence in dt at the paper scenarios' steps_per_contact, 4000 (HMD converged at
+    first order until issue 13, 1.5e-4 at 2000 steps; now at second order, see
+    tests/test_reference.py::test_hm_and_hmd_converge_at_second_order)."""
     coarse = impact(law, angle, f"run.steps_per_contact={PAPER_STEPS}")
     fine = impact(law, angle, f"run.steps_per_contact={2 * PAPER_STEPS}")
     for measure in ("y1", "y2", "et"):

@@ -112,8 +112,8 @@ SPECIAL_READINGS = (SPECIAL_STEP, SPECIAL_TOTAL, SPECIAL_FORCE, SPECIAL_DISPLACE
 @numba.njit(cache=True, inline="always")
 def _hmd_theta(mode, force_along, ft_star, ft_2star, fn, mu):
     """theta of eqs 22a-c at one instant (the rate form: the discrete mu dFn terms of
-    the paper's incremental statement vanish with dt and are accounted for by taking
-    theta at the middle of the step)."""
+    the paper's incremental statement vanish with dt; the step itself is integrated by
+    _hmd_branch_step). Used to tell partial slip (theta < 1) at the start of a step."""
     if fn <= 0.0:
         return 1.0 if force_along == 0.0 else 0.0
     if mode == UNLOADING:
