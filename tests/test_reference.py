@@ -94,7 +94,8 @@ def test_engine_within_1e_4_of_reference_at_default_settings(law):
 
 def test_hmd_engine_within_1e_4_of_reference_over_the_paper_sweep():
     # issue 13: at the default settings, every angle of the paper's sweep (0.5 deg
-    # included), y1, y2 and et; measured worst 6.8e-6 (12 deg)
+    # included), y1, y2 and et; measured worst 2.7e-7 (0.5 deg; 6.8e-6 at 12 deg before
+    # the second-order integration of eq 21, docs/laws.md HMD choice 5)
     from minidem import bench
 
     for angle in reference.PAPER_ANGLES_DEG:
