@@ -22,6 +22,7 @@ from minidem.contact.builtin_laws.common import (
     incremental_spring,
     linear_damping_ratio,
 )
+from minidem.contact.builtin_laws.hertz import _step_mean_sqrt
 from minidem.contact.builtin_laws.linear import (
     CALIBRATION_SPEED,
     NORMAL_STIFFNESS,
@@ -182,10 +183,10 @@ def prepare_shear_and_friction(pair, params, prepared):
 def mindlin_tangential(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
                        contact_radius, elastic_normal_force, normal_force, tangential_increment, tangential_velocity,
                        history):
-    """Ft += 8 G* a dd capped at mu max(Fn, 0) (eq 39), a = sqrt(R* d) at the middle of
-    the step (with the end-of-step radius the update is only first order in dt)."""
-    mid_overlap = max(normal_overlap - 0.5 * normal_overlap_increment, 0.0)
-    stiffness = constants[0] * math.sqrt(effective_radius * mid_overlap)
+    """Ft += 8 G* a dd capped at mu max(Fn, 0) (eq 39), a = sqrt(R* d) averaged over the
+    step as hm does (the end-of-step radius makes the update first order in dt)."""
+    stiffness = constants[0] * math.sqrt(effective_radius) * _step_mean_sqrt(
+        normal_overlap - normal_overlap_increment, normal_overlap)
     return incremental_spring(history, stiffness, tangential_increment, constants[1] * max(normal_force, 0.0))
 
 
