@@ -724,6 +724,9 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         # cost steps and place the first touch only to within a step. Touching at
         # t = 0 it is velocity Verlet, bit for bit.
         scene.integrator = "analytic_flight" if scene.one_sphere_among_planes else "velocity_verlet"
+    from minidem import derived
+
+    derived.check_scene(scene)  # masses, inertias, energies: what the values imply
     _check_geometry(scene)
     return scene
 

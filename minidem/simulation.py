@@ -27,7 +27,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from minidem import __version__, integrate, kernel, laws, neighbours
+from minidem import __version__, derived, integrate, kernel, laws, neighbours
 from minidem.scenario import Scene, ScenarioError
 
 # OpenMP first: its threads wait briefly at the end of a parallel region instead of
@@ -448,9 +448,13 @@ class Simulation:
         self.pairs = scene.n_particles > 1
         self.parallel = scene.n_particles > PARALLEL_ABOVE and scene.stop != "separation"
         self.skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
-        self._prepare_constants()
-        self.dt, self.dt_reason = self._choose_time_step()
-        self._plan_flight()
+        # what the values imply (constants, contact time, dt, step count), checked before
+        # the kernel is compiled: out of float64 range is bad input naming the keys
+        with derived.arithmetic(scene, "deriving the contact constants and the time step"):
+            self._prepare_constants()
+            self.dt, self.dt_reason = self._choose_time_step()
+            self._plan_flight()
+        derived.check_simulation(self)
         forced = kernel_flags or {}
         self.spin = forced.get("SPIN", self.spin)
         self.pairs = forced.get("PAIRS", self.pairs)
@@ -657,6 +661,14 @@ class Simulation:
         self.start_time = duration
         self.start_position, self.start_velocity = position[None, :].copy(), velocity[None, :].copy()
 
+    @property
+    def end_time(self) -> float:
+        """run.end_time, or the default: the flight to first touch and 100 contact times."""
+        scene = self.scene
+        if scene.end_time is not None:
+            return scene.end_time
+        return max(self.start_time, self.flight_time) + 100.0 * self.reference_contact_time
+
     # -- neighbour lists -----------------------------------------------------------
     def rebuild(self, state: State) -> None:
         """New Verlet lists at the current positions; every contact keeps its history."""
@@ -761,8 +773,7 @@ class Simulation:
         status = np.zeros(4, dtype=np.int64)
         tracking = (probe_wall, probe, stats, status)
         stop_at_separation = scene.stop == "separation"
-        end_time = scene.end_time if scene.end_time is not None else \
-            max(self.start_time, self.flight_time) + 100.0 * self.reference_contact_time
+        end_time = self.end_time
         if not math.isfinite(end_time):
             raise ScenarioError(f"{scene.source}: run.end_time is needed: the scene has no contact to stop at")
         start_time = self.start_time  # > 0 after an analytic flight to first touch
