@@ -319,9 +319,50 @@ def read_toml(path: str | Path) -> dict:
         raise ScenarioError(f"{path}: not UTF-8 text ({exc.reason}: byte 0x{raw[exc.start]:02x} at offset "
                             f"{exc.start}, line {line}); a scenario file is TOML, which must be UTF-8") from None
     try:
-        return tomllib.loads(text)
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{path}: TOML syntax error: {exc}") from None
+        raise ScenarioError(f"{path}: TOML syntax error: {_toml_error(exc, text)}") from None
+    except RecursionError:  # tomllib parses nested tables and arrays recursively
+        raise ScenarioError(f"{path}: TOML nested too deeply to read (tables or arrays thousands of levels "
+                            f"deep); a scenario nests at most {MAX_DEPTH} levels") from None
+    _check_depth(data, str(path))
+    return data
+
+
+# A scenario's deepest value is 4 levels down ([sweep] cases = {"key" = [[...]]}); far
+# deeper nesting is a generated or corrupted file, refused before anything recurses on it.
+MAX_DEPTH = 32
+
+
+def _check_depth(value, source: str) -> None:
+    """Refuse tables and arrays nested more than MAX_DEPTH levels (iteratively: the check
+    itself must not overflow the stack it protects)."""
+    pending = [(value, [])]
+    while pending:
+        node, path = pending.pop()
+        if len(path) > MAX_DEPTH:
+            shown = ".".join(path[:4])
+            raise ScenarioError(f"{source}: '{shown}...' is nested {len(path)}+ levels deep; a scenario nests at most "
+                                f"{MAX_DEPTH} levels (tables and arrays)")
+        if isinstance(node, dict):
+            pending.extend((v, path + [str(k)]) for k, v in node.items())
+        elif isinstance(node, list):
+            pending.extend((v, path + [str(i)]) for i, v in enumerate(node))
+
+
+def _toml_error(exc: tomllib.TOMLDecodeError, text: str) -> str:
+    """tomllib's message, with the key named when it is a duplicate ("Cannot overwrite a
+    value" says only the line)."""
+    import re
+
+    message = str(exc)
+    found = re.search(r"\(at line (\d+), column (\d+)\)", message)
+    if found and ("overwrite" in message or "Cannot declare" in message):
+        line = text.splitlines()[int(found.group(1)) - 1] if int(found.group(1)) <= len(text.splitlines()) else ""
+        key = line.split("=", 1)[0].strip() if "=" in line else line.strip()
+        if key:
+            message += f": '{key}' is given twice (a key may appear once in a table, and a [table] header once)"
+    return message
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
@@ -337,6 +378,9 @@ def parse_override(text: str) -> tuple[list[str], Any]:
         value = tomllib.loads(f"v = {value_text.strip()}")["v"]
     except tomllib.TOMLDecodeError:
         value = value_text.strip()
+    except RecursionError:
+        raise ScenarioError(f"--set {key}=...: the value is nested too deeply to read") from None
+    _check_depth(value, f"--set {key}")
     return key.split("."), value
 
 

@@ -488,7 +488,7 @@ class Simulation:
                     row, named = law.prepared_constants(pair, scene.law_parameters)
                 except laws.LawError:
                     raise
-                except Exception as exc:  # noqa: BLE001 - a plugin's prepare() is user code
+                except laws.PLUGIN_FAULTS as exc:  # a plugin's prepare() is user code (sys.exit too)
                     # a ValueError is how prepare() refuses parameters (its message is for the
                     # user); anything else is a bug in it: say what and where
                     why = str(exc) if type(exc) is ValueError else laws._one_line(exc)
