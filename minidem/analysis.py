@@ -108,8 +108,8 @@ def energy_budget_warning(result: RunResult) -> str | None:
     """A warning if a scene's kinetic energy ever exceeded what it could have: contacts
     are passive, so KE(t) <= KE(0) + the work gravity has done. The samples and that
     work are taken at the same steps (the run's checks). 1e-3 of the budget allows for
-    integration error; the blow-up guard stops a run only at 1000 times the budget, so
-    between the two a run (an unstable time step the user allowed) would end silently."""
+    integration error; the blow-up guard stops a run at twice the budget and a floor
+    (minidem.blowup.ENERGY_FACTOR), so this warns of the smaller excesses in between."""
     scene = result.scene
     if scene.impact is not None or result.energy is None or len(result.energy) == 0:
         return None  # an impact's own check: energy_creation_warning

@@ -124,7 +124,10 @@ def command_run(args) -> int:
         from minidem.kernel import TRACE_COLUMNS
 
         output.write_csv(directory / "trace.csv", TRACE_COLUMNS, result.trace.tolist())
-    if not args.quiet:
+    if args.quiet:  # --quiet keeps the warnings (docs/cli.md), on standard error
+        for warning in summary["warnings"]:
+            print(f"minidem: warning: {warning}", file=sys.stderr)
+    else:
         print_summary(summary)
         for warning in summary["warnings"]:
             print(f"  warning: {warning}")
