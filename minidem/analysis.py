@@ -93,7 +93,14 @@ def incomplete_contact(result: RunResult) -> str | None:
     if scene.impact is not None and result.first_contact_time < 0:
         return f"no contact by t = {result.time:.4g} s (run.end_time): no rebound to measure"
     if not result.separated and scene.stop == "separation":
-        return f"the contact had not ended by t = {result.time:.4g} s (run.end_time)"
+        limit = ("run.end_time" if scene.end_time is not None else
+                 "the default run.end_time, 100 contact times")
+        if result.contact_statistics and result.first_contact_time < 0:
+            return (f"no contact by t = {result.time:.4g} s ({limit}): run.stop = \"separation\" had no contact "
+                    "to wait for; to follow a scene as it falls or settles give run.stop = \"time\" and "
+                    "run.end_time")
+        return (f"the contacts had not ended by t = {result.time:.4g} s ({limit}; {result.contacts} contact(s) at "
+                "the end)")
     return None
 
 

@@ -35,7 +35,7 @@ class Key:
     low: float | None = None
     high: float | None = None
     low_open: bool = False
-    high_open: bool = False  # only printed (bounds_text); the check that refuses high is a cross-key rule
+    high_open: bool = False
     choices: tuple = ()
     required: bool = False
 
@@ -384,6 +384,14 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     return key.split("."), value
 
 
+def _list_index(part: str) -> int:
+    """An index into a [[table]] array as --set writes it: 0, 1, ... (Python's negative
+    indices, '-1' for the last, would make 'walls.-1' and 'fill.5' mean different things)."""
+    if not part.isdecimal():
+        raise ValueError(part)
+    return int(part)
+
+
 def apply_overrides(data: dict, overrides: list[str]) -> dict:
     data = copy.deepcopy(data)
     for text in overrides:
@@ -392,7 +400,7 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
         for depth, part in enumerate(path[:-1]):
             if isinstance(node, list):
                 try:
-                    node = node[int(part)]
+                    node = node[_list_index(part)]
                 except (ValueError, IndexError):
                     raise ScenarioError(f"--set {text!r}: '{'.'.join(path[:depth + 1])}' is not a valid "
                                         f"index (the list has {len(node)} entries)") from None
@@ -402,9 +410,10 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
                 raise ScenarioError(f"--set {text!r}: '{'.'.join(path[:depth + 1])}' is a value, not a table")
         if isinstance(node, list):
             try:
-                node[int(path[-1])] = value
+                node[_list_index(path[-1])] = value
             except (ValueError, IndexError):
-                raise ScenarioError(f"--set {text!r}: bad list index {path[-1]!r}") from None
+                raise ScenarioError(f"--set {text!r}: bad list index {path[-1]!r} (the list has {len(node)} "
+                                    f"entries, 0 to {len(node) - 1})") from None
         else:
             node[path[-1]] = value
     return data
@@ -451,8 +460,8 @@ def _check_value(key: Key, value: Any, where: str, errors: _Errors) -> Any:
         unit = f" {key.unit}" if key.unit not in ("", "-") else ""
         if key.low is not None and (value < key.low or (key.low_open and value == key.low)):
             errors.add(where, f"must be {'>' if key.low_open else '>='} {key.low:g}{unit}, got {value:g}")
-        if key.high is not None and value > key.high:
-            errors.add(where, f"must be <= {key.high:g}{unit}, got {value:g}")
+        if key.high is not None and (value > key.high or (key.high_open and value == key.high)):
+            errors.add(where, f"must be {'<' if key.high_open else '<='} {key.high:g}{unit}, got {value:g}")
         return value
     if key.kind == "int":
         if isinstance(value, bool) or not isinstance(value, int):
@@ -643,7 +652,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
                          wall_material, cylinders, meshes, index, plane_origin)
             continue
         normal = values.get("normal")
-        if normal is None and kind == "plane":
+        if normal is None and kind == "plane" and not errors.has(f"{where}.normal"):
             errors.add(f"{where}.normal", "missing required key for a plane (normal pointing to the spheres)")
         if isinstance(normal, np.ndarray):
             length = float(np.linalg.norm(normal))
@@ -679,7 +688,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
             errors.add("impact.wall", f"wall index {wall} does not exist: the scenario has "
                        f"{len(wall_normal)} valid wall(s) (an [[walls]] plane is needed)")
         elif all(isinstance(values.get(k), float) for k in ("radius", "speed", "angle_deg", "spin", "gap")):
-            if values["angle_deg"] >= 90.0:
+            if values["angle_deg"] >= 90.0 and not errors.has("impact.angle_deg"):
                 errors.add("impact.angle_deg", "must be < 90 deg (90 is parallel to the wall: no impact)")
             normal = wall_normal[wall]
             tangent = _tangent(normal, values.get("tangent"), errors)

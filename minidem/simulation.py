@@ -431,10 +431,13 @@ class State:
 class Simulation:
     """A scene bound to a compiled kernel, its constants and its time step."""
 
-    def __init__(self, scene: Scene, registry: laws.LawRegistry | None = None, kernel_flags: dict | None = None):
+    def __init__(self, scene: Scene, registry: laws.LawRegistry | None = None, kernel_flags: dict | None = None,
+                 compile: bool = True):
         """``kernel_flags`` forces scene-shape flags on (e.g. {"PAIRS": True}) to measure
         what modelling only what a scene needs saves (``minidem bench``); results are
-        the same, only the cost differs."""
+        the same, only the cost differs. ``compile=False`` stops after the constants, the
+        time step and the checks of what they imply (validation: a sweep's every case,
+        the input fuzz test); such a Simulation cannot run."""
         self.scene = scene
         if scene.walls is None:  # a Scene built by hand: planes only
             from minidem.walls import WallSet
@@ -455,6 +458,10 @@ class Simulation:
             self.dt, self.dt_reason = self._choose_time_step()
             self._plan_flight()
         derived.check_simulation(self)
+        self.state: State | None = None
+        self.interrupted_at: tuple[float, Path] | None = None  # (time s, checkpoint) after Ctrl-C
+        if not compile:
+            return
         forced = kernel_flags or {}
         self.spin = forced.get("SPIN", self.spin)
         self.pairs = forced.get("PAIRS", self.pairs)
@@ -463,8 +470,6 @@ class Simulation:
                                      forced.get("CYLINDERS", scene.walls.cylinder_base.shape[0] > 0),
                                      forced.get("MESHES", scene.walls.triangles.shape[0] > 0), self.parallel,
                                      scene.integrator)
-        self.state: State | None = None
-        self.interrupted_at: tuple[float, Path] | None = None  # (time s, checkpoint) after Ctrl-C
 
     # -- constants -------------------------------------------------------------
     def _reference_size(self) -> tuple[float, float]:

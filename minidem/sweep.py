@@ -137,12 +137,16 @@ def plan(data: dict, source: str) -> SweepPlan:
         errors.add("sweep.series_labels", f"expected {len(_series(sweep))} labels (one per combination of "
                    f"{', '.join(sweep.series_keys) or 'nothing'}), got {len(sweep.series_labels)}")
     # every case must be a valid scenario before anything runs: bad input is exit 2
+    from minidem import laws, simulation
+
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         for index in range(len(cases)):
             try:
-                scenario.build_scene(scenario.apply_overrides(base, sweep.overrides(index)), source)
-            except ScenarioError as exc:
+                scene = scenario.build_scene(scenario.apply_overrides(base, sweep.overrides(index)), source)
+                # what the values imply (constants, time step, steps), without compiling
+                simulation.Simulation(scene, compile=False)
+            except (ScenarioError, laws.LawError) as exc:
                 setting = ", ".join(f"{k} = {_toml_value(v)}" for k, v in zip(keys, cases[index]))
                 errors.add(f"sweep case {index} ({setting})", str(exc).replace(f"{source}: ", "", 1))
                 break
