@@ -321,6 +321,7 @@ class _PipeClosedSink:
 
 def main(argv=None) -> int:
     from minidem.laws import LawError
+    from minidem.output import OutputError
     from minidem.scenario import ScenarioError
     from minidem.simulation import RunFailure
 
@@ -338,7 +339,7 @@ def main(argv=None) -> int:
                 raise
             print(f"minidem: error: {exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
-        except RunFailure as exc:
+        except (RunFailure, OutputError) as exc:
             if args.debug:
                 raise
             print(f"minidem: run failed: {exc}", file=sys.stderr)

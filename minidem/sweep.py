@@ -323,10 +323,17 @@ class Journal:
         self.synced = wallclock.monotonic()
 
     def append(self, row: dict) -> None:
-        self.handle.write((json.dumps(row, default=_plain) + "\n").encode())
-        if wallclock.monotonic() - self.synced > 1.0:
-            os.fsync(self.handle.fileno())
-            self.synced = wallclock.monotonic()
+        from minidem.output import output_error
+
+        line = (json.dumps(row, default=_plain) + "\n").encode()
+        try:
+            self.handle.write(line)
+            if wallclock.monotonic() - self.synced > 1.0:
+                os.fsync(self.handle.fileno())
+                self.synced = wallclock.monotonic()
+        except OSError as exc:
+            # a torn last line is cut on resume: the rows before it are kept
+            raise output_error(self.path, exc) from exc
 
     def close(self) -> None:
         if self.handle is not None:
