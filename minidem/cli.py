@@ -348,6 +348,11 @@ def main(argv=None) -> int:
             print("minidem: interrupted", file=sys.stderr)
             return 130
         except Exception as exc:  # noqa: BLE001 - never a bare traceback without --debug
+            from minidem.simulation import interrupted
+
+            if interrupted(exc):  # a Ctrl-C that surfaced as another error (numba's SystemError)
+                print("minidem: interrupted", file=sys.stderr)
+                return 130
             if args.debug:
                 raise
             print(f"minidem: internal error: {type(exc).__name__}: {exc} (rerun with --debug for the traceback)",

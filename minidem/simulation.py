@@ -953,7 +953,11 @@ class Simulation:
                     chunk = min(chunk, max(2 * LoopThreads.MIN_STEPS, chunk // LoopThreads.PROBE_FRACTION))
                 trace = np.zeros((chunk, len(kernel.TRACE_COLUMNS))) if scene.trace else no_trace
                 chunk_started = wallclock.perf_counter()
-                taken, needs_rebuild = call(steps, chunk, completing, trace, chunk_threads)
+                # compiled code never sees a signal before it returns anyway: held, a
+                # Ctrl-C is delivered here after the call, never inside numba's dispatcher
+                # (which then returned 'a result with an exception set', a SystemError)
+                with _interrupts_deferred():
+                    taken, needs_rebuild = call(steps, chunk, completing, trace, chunk_threads)
                 loop_threads.record(chunk_threads, taken, wallclock.perf_counter() - chunk_started)
                 if scene.trace:
                     trace_chunks.append(trace[:taken])
@@ -1006,12 +1010,19 @@ class Simulation:
                 if separating:
                     separated = True
                     break
-        except KeyboardInterrupt:
-            # Ctrl-C (or SIGTERM through the CLI) between chunks: keep what was done
+        except (KeyboardInterrupt, SystemError) as exc:
+            # Ctrl-C (or SIGTERM through the CLI) between chunks: keep what was done. A
+            # SystemError caused by a Ctrl-C (one that reached the dispatcher of a compiled
+            # function from another thread) is the same interrupt.
+            if not interrupted(exc):
+                raise
             if policy is not None:
-                self.interrupted_at = (start_time + good["loop"]["steps"] * self.dt,
-                                       write_state(checkpoint.CHECKPOINT, good, "checkpoint"))
-            raise
+                with _interrupts_deferred():  # a second Ctrl-C must not tear this checkpoint
+                    written = write_state(checkpoint.CHECKPOINT, good, "checkpoint")
+                    self.interrupted_at = (start_time + good["loop"]["steps"] * self.dt, written)
+            if isinstance(exc, KeyboardInterrupt):
+                raise
+            raise KeyboardInterrupt from exc
         if frames_on and loop["last_frame_step"] != loop["steps"]:
             # the state the run ends in is always a frame (also when the output interval
             # does not divide the run, or exceeds it): ParaView's last frame is the result
@@ -1074,6 +1085,18 @@ def _interrupts_deferred():
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, held)
+
+
+def interrupted(exc: BaseException) -> bool:
+    """Whether ``exc`` is a KeyboardInterrupt or was caused by one (a SystemError of
+    numba's dispatcher when Ctrl-C arrived as a compiled function returned)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 def _numba_cause(exc: Exception) -> str:
