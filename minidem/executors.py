@@ -212,7 +212,10 @@ class DaskCluster:
                            self.MAX_ATTEMPTS)
 
     def close(self):
-        self.client.close()
+        try:  # bounded: after a lost scheduler a plain close() waits for it to come back
+            self.client.close(timeout=10)
+        except Exception:  # noqa: BLE001 - nothing left to close cleanly
+            pass
 
 
 def collect(client, function, batches_of_tasks, groups, max_attempts: int) -> Iterator[tuple[int, Any]]:
@@ -243,7 +246,7 @@ def collect(client, function, batches_of_tasks, groups, max_attempts: int) -> It
         return []
 
     try:
-        for future in pending:
+        for future in _while_scheduler_answers(client, pending):
             index = futures.pop(future)
             status = future.status
             if status == "finished":
@@ -263,8 +266,41 @@ def collect(client, function, batches_of_tasks, groups, max_attempts: int) -> It
                 continue
             future.release()
     finally:
-        if futures:  # interrupted: cancel what nobody will wait for
-            client.cancel(list(futures))
+        if futures and client.status == "running":  # interrupted: cancel what nobody will wait for
+            try:
+                client.cancel(list(futures))
+            except Exception:  # noqa: BLE001 - the scheduler went away meanwhile: nothing to cancel
+                pass
+
+
+# A scheduler the client cannot reach for this long is lost: the sweep stops (exit 1,
+# the finished cases kept in the journal) instead of waiting for it forever. distributed
+# itself retries the connection for ~30 s (distributed.comm.timeouts.connect) and then
+# leaves the client "connecting" with futures that never complete.
+SCHEDULER_LOST_S = 30.0
+
+
+def _while_scheduler_answers(client, pending, poll_s: float = 0.2):
+    """The futures of ``pending`` (an as_completed) as they finish, as long as the client
+    is connected to its scheduler; BackendFailure once it has not been for SCHEDULER_LOST_S."""
+    unreachable_since = None
+    while not pending.is_empty():
+        if pending.has_ready():
+            for future in pending.next_batch(block=False):
+                yield future
+            continue
+        if client.status == "running":
+            unreachable_since = None
+        else:
+            unreachable_since = unreachable_since or time.monotonic()
+            if client.status in ("closed", "closing") or time.monotonic() - unreachable_since > SCHEDULER_LOST_S:
+                raise BackendFailure(
+                    f"lost the Dask scheduler {getattr(client, 'scheduler', None) and client.scheduler.address}: "
+                    f"the client has been disconnected (status '{client.status}') for "
+                    f"{time.monotonic() - unreachable_since:.0f} s; {pending.count()} batch(es) of cases did not "
+                    "come back. Restart the scheduler and run the same command again: the finished cases are "
+                    "kept in the journal")
+        time.sleep(poll_s)
 
 
 def from_options(scheduler: str | None, workers: int) -> Executor:

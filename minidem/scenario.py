@@ -434,6 +434,12 @@ class _Errors:
         """Whether a message about the key ``where`` was already added."""
         return any(m.startswith(f"{where}: ") for m in self.messages)
 
+    def has_under(self, where: str) -> bool:
+        """Whether a message about ``where`` or any of its keys was already added: a table
+        with a bad value is not used further (its other values would be combined with
+        the None the bad one was dropped to)."""
+        return any(m.startswith((f"{where}: ", f"{where}.")) for m in self.messages)
+
     def raise_if_any(self) -> None:
         if self.messages:
             lines = "\n".join(f"  - {m}" for m in self.messages)
@@ -799,6 +805,8 @@ def _shaped_wall(kind, values, where, source, errors, material_of, wall_point, w
     from minidem import walls as wall_shapes
 
     material = material_of(values.get("material"), f"{where}.material")
+    if errors.has_under(where):
+        return
     if kind == "box":
         if _required(values, ("lower", "upper"), "a box", where, errors):
             if np.any(values["upper"] <= values["lower"]):
@@ -846,6 +854,8 @@ def _fill(table, where, source, errors, material_of, position, velocity, spin, r
     kind = values.get("kind")
     _check_kind_keys(table, "fill", kind, where, errors)
     material = material_of(values.get("material"), f"{where}.material")
+    if errors.has_under(where):
+        return
     try:
         if kind == "lattice" and _required(values, ("radius", "lower", "upper", "spacing"), "a lattice", where, errors):
             if values["spacing"] < 2.0 * values["radius"] + 2.0 * values["jitter"]:
