@@ -24,7 +24,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from minidem import laws, scenario, simulation, sweep
+from minidem import laws
+from minidem.engine import simulation
+from minidem.scene import scenario
+from minidem.studies import sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = sorted(p for p in (ROOT / "scenarios").rglob("*.toml") if "bench" not in p.parts)

@@ -26,11 +26,10 @@ MARKERS = "os^vDx+*<>ph"
 
 def _series_of(sweep, rows):
     """[(label, [rows])] in first-seen order of the non-angle swept values."""
-    from minidem.sweep import _series
 
     keys = sweep.series_keys
     positions = [sweep.keys.index(k) for k in keys]
-    groups = {s: [] for s in _series(sweep)}
+    groups = {s: [] for s in sweep.series()}
     for row, case in zip(rows, sweep.cases):
         if not row.get("error"):
             groups[tuple(case[p] for p in positions)].append(row)
@@ -52,11 +51,11 @@ def _finish(fig, ax, sweep, path, xlabel, ylabel):
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    # rendered in memory, then written atomically as every result is (minidem.output):
+    # rendered in memory, then written atomically as every result is (minidem.files):
     # a full disk or a kill never leaves a truncated PNG under the final name
     import io
 
-    from minidem.output import atomic_write
+    from minidem.files import atomic_write
 
     buffer = io.BytesIO()
     try:
@@ -135,17 +134,16 @@ def plot_force_displacement(sweep, rows, path):
 
 
 def _tangent_of(sweep):
-    from minidem import scenario
+    from minidem.scene import scenario
 
     scene = scenario.build_scene(scenario.apply_overrides(sweep.base, sweep.overrides(0)), sweep.source)
     return scene.impact.tangent if scene.impact is not None else np.array([1.0, 0.0, 0.0])
 
 
 def draw(sweep, rows, directory) -> list[Path]:
-    from minidem.sweep import friction_of
 
     directory = Path(directory)
-    mu = friction_of(sweep)
+    mu = sweep.friction
     written = []
     for figure in sweep.figures:
         path = directory / f"{figure}.png"

@@ -1,6 +1,6 @@
 """What a scenario's values imply, checked before anything is compiled or run.
 
-Every key has its own bounds (``minidem.scenario.SCHEMA``), but values inside their
+Every key has its own bounds (``minidem.scene.scenario.SCHEMA``), but values inside their
 bounds can still imply quantities a float64 computation cannot carry: a density of
 1e-320 kg/m^3 gives a sphere of mass 0 (a division by zero at the first step), a
 Young's modulus of 1e308 Pa an infinite effective modulus, an end time of 1e308 s more
@@ -51,7 +51,7 @@ def scene_inputs(scene) -> list[tuple[str, float]]:
                    (f"materials.{m.name}.poisson_ratio", m.poisson_ratio),
                    (f"materials.{m.name}.density", m.density)]
     if scene.n_particles:
-        from minidem.scenario import _particle_name
+        from minidem.scene.scenario import _particle_name
 
         smallest, largest = int(np.argmin(scene.radius)), int(np.argmax(scene.radius))
         inputs.append((_key_of(_particle_name(scene, smallest), "radius"), float(scene.radius[smallest])))
@@ -85,7 +85,7 @@ def _key_of(particle: str, key: str) -> str:
 def refusal(scene, what: str, inputs=None):
     """The ScenarioError for a derived quantity out of range: what it is, and the keys it
     comes from, the most extreme value first (that one is almost always the mistake)."""
-    from minidem.scenario import ScenarioError
+    from minidem.scene.scenario import ScenarioError
 
     inputs = scene_inputs(scene) if inputs is None else inputs
     return ScenarioError(f"{scene.source}: {what}: out of the range of a float64 computation (or of a run); "
@@ -95,7 +95,7 @@ def refusal(scene, what: str, inputs=None):
 def check_scene(scene) -> None:
     """Each particle's mass, moment of inertia and kinetic energy finite and (mass,
     inertia) > 0; each material's shear modulus E / 2(1 + nu) finite and > 0."""
-    from minidem.scenario import _particle_name
+    from minidem.scene.scenario import _particle_name
 
     with np.errstate(all="ignore"):
         for m in scene.materials:
