@@ -86,7 +86,7 @@ def command_run(args) -> int:
             warnings.warn(f"{option} ignored: {args.file} has no [sweep] table (a single run)")
     scene = scenario.load_scene(args.file, args.set, args.out)
     directory = scenario.prepare_output_directory(scene.output_directory, scenario.output_origin(args.out, scene.raw), args.file)
-    sim = simulation.Simulation(scene)
+    sim = simulation.Simulation(scene, notify=None if args.quiet else _note)
     policy = checkpoint.Policy(directory, scene.checkpoint_interval, scene.checkpoint_wall_interval)
     resume_from = checkpoint.load_for_resume(sim, directory) if args.resume else None
     if not args.quiet:
@@ -141,6 +141,11 @@ def command_run(args) -> int:
         print(f"  {result.steps} steps in {result.wall_time:.3g} s: {rate:.4g} steps/s, "
               f"{rate * scene.n_particles:.4g} particle-steps/s on {result.threads} thread(s)")
     return EXIT_OK
+
+
+def _note(text: str) -> None:
+    """What a slow step of the set-up is doing (before the header: the time step needs it)."""
+    print(f"minidem: {text} ...", file=sys.stderr, flush=True)
 
 
 def _terminate(signum, frame):

@@ -129,3 +129,69 @@ def test_mutated_scenarios_are_accepted_or_refused_with_a_message(path):
         outcomes[outcome.split(":")[0]] += 1
     # the mutations are not all refused by one early check: both outcomes occur
     assert outcomes["refused"] > CASES_PER_FILE // 4, outcomes
+
+
+# Keys of the paper's impact whose values do not change the compiled kernel (its flags:
+# friction, pairs, wall kinds, integrator), so every real run below loads one cached kernel.
+RUN_KEYS = ["materials.glass.youngs_modulus", "materials.glass.poisson_ratio", "materials.glass.density",
+            "impact.radius", "impact.speed", "impact.angle_deg", "impact.gap", "impact.spin", "run.dt",
+            "run.end_time", "run.skin", "run.steps_per_contact", "contact.friction"]
+REAL_RUNS = 16
+MAX_REAL_STEPS = 200_000
+
+
+def test_accepted_mutations_of_the_impact_run_to_a_finite_state(tmp_path, capsys):
+    """Mutations of the paper's impact through `minidem run` itself: exit 0 with a finite
+    final state, 1 (a run failure, with its message) or 2 (refused); never 'internal
+    error'. Runs longer than MAX_REAL_STEPS are validated only (CI time)."""
+    from minidem import cli
+    from minidem.engine import checkpoint
+
+    path = ROOT / "scenarios" / "oblique.toml"
+    base = scenario.read_toml(path)
+    rng = random.Random("issue-18-real-runs")
+    codes = []
+    for case in range(REAL_RUNS * 3):
+        if len([c for c in codes if c == 0]) >= REAL_RUNS // 2 and len(codes) >= REAL_RUNS:
+            break
+        key = rng.choice(RUN_KEYS)
+        section, name = key.rsplit(".", 1)
+        node = base
+        for part in section.split("."):
+            node = node.get(part, {})
+        given = node.get(name, {"run.dt": 1e-7, "run.end_time": 1e-3, "run.skin": 0.01, "impact.gap": 1e-3,
+                                "impact.spin": 10.0, "run.steps_per_contact": 4000}.get(key, 1.0))
+        draw = rng.random()
+        if draw < 0.6:  # a plausible change: the file's value within two decades
+            value = (1e-7 if given == "auto" else float(given)) * 10.0 ** rng.uniform(-2.0, 2.0)
+        elif draw < 0.85:
+            value = _magnitude(rng)
+        else:
+            value = rng.choice([0.0, -1.0, 1e-320, 1e308, math.nan])
+        if key == "run.steps_per_contact" and math.isfinite(value) and abs(value) < 1e18:
+            value = int(value)
+        text = "nan" if isinstance(value, float) and math.isnan(value) else repr(value)
+        overrides = [f"{key}={text}"]
+        data = scenario.apply_overrides(base, overrides)
+        outcome = validate(data, str(path))
+        if outcome == "accepted":
+            sim = simulation.Simulation(scenario.build_scene(data, str(path)), compile=False)
+            # the impact stops at separation: about one contact time of steps (its
+            # free flight is solved in closed form), at most the run's end time
+            duration = min(sim.end_time - sim.start_time, 3.0 * sim.reference_contact_time)
+            if duration / sim.dt > MAX_REAL_STEPS:
+                continue
+        out = tmp_path / f"case{case}"
+        code = cli.main(["run", str(path), "--set", overrides[0], "--out", str(out), "--quiet"])
+        err = capsys.readouterr().err
+        assert "internal error" not in err and "Traceback" not in err, f"{overrides}: {err}"
+        assert code in (0, 1, 2), (overrides, code, err)
+        assert (code == 2) == outcome.startswith("refused"), (overrides, outcome, err)
+        if code == 0:
+            arrays, _ = checkpoint.read(out / checkpoint.FINAL_STATE)
+            for name in ("position", "velocity", "angular_velocity", "force", "torque"):
+                assert np.all(np.isfinite(arrays[name])), (overrides, name)
+        else:
+            assert err.startswith(("minidem: error: ", "minidem: run failed: ")), err
+        codes.append(code)
+    assert codes.count(0) >= 3 and codes.count(2) >= 3, codes

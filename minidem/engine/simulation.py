@@ -436,13 +436,16 @@ class Simulation:
     """A scene bound to a compiled kernel, its constants and its time step."""
 
     def __init__(self, scene: Scene, registry: laws.LawRegistry | None = None, kernel_flags: dict | None = None,
-                 compile: bool = True):
+                 compile: bool = True, notify=None):
         """``kernel_flags`` forces scene-shape flags on (e.g. {"PAIRS": True}) to measure
         what modelling only what a scene needs saves (``minidem bench``); results are
         the same, only the cost differs. ``compile=False`` stops after the constants, the
         time step and the checks of what they imply (validation: a sweep's every case,
-        the input fuzz test); such a Simulation cannot run."""
+        the input fuzz test); such a Simulation cannot run. ``notify(text)``: told what is
+        being prepared when a law's prepare() or the kernel's compilation takes more than
+        SLOW_NOTICE_S (the CLI prints it), so a long wait is never silent."""
         self.scene = scene
+        self.notify = notify
         if scene.walls is None:  # a Scene built by hand: planes only
             from minidem.geometry.walls import WallSet
 
@@ -470,10 +473,12 @@ class Simulation:
         self.spin = forced.get("SPIN", self.spin)
         self.pairs = forced.get("PAIRS", self.pairs)
         self.parallel = forced.get("PARALLEL", self.parallel)
-        self.kernel = compile_kernel(self.entry, self.spin, self.pairs,
-                                     forced.get("CYLINDERS", scene.walls.cylinder_base.shape[0] > 0),
-                                     forced.get("MESHES", scene.walls.triangles.shape[0] > 0), self.parallel,
-                                     scene.integrator)
+        with _notice_if_slow(notify, f"compiling (or loading from the cache) the kernel of law '{self.law.name}' "
+                             "for this scene: a first run of a law and scene shape takes a minute or so"):
+            self.kernel = compile_kernel(self.entry, self.spin, self.pairs,
+                                         forced.get("CYLINDERS", scene.walls.cylinder_base.shape[0] > 0),
+                                         forced.get("MESHES", scene.walls.triangles.shape[0] > 0), self.parallel,
+                                         scene.integrator)
 
     # -- constants -------------------------------------------------------------
     def _reference_size(self) -> tuple[float, float]:
@@ -494,7 +499,10 @@ class Simulation:
             for b in range(a, n):
                 pair = laws.ContactPair.from_materials(materials[a], materials[b], radius, mass, speed)
                 try:
-                    row, named = law.prepared_constants(pair, scene.law_parameters)
+                    with _notice_if_slow(self.notify, f"preparing law '{law.name}' ({self.entry.distribution}) for "
+                                         f"materials '{materials[a].name}'/'{materials[b].name}' (its prepare() "
+                                         f"is still running)"):
+                        row, named = law.prepared_constants(pair, scene.law_parameters)
                 except laws.LawError:
                     raise
                 except laws.PLUGIN_FAULTS as exc:  # a plugin's prepare() is user code (sys.exit too)
@@ -1089,6 +1097,28 @@ def _interrupts_deferred():
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, held)
+
+
+# A step of the set-up (a law's prepare(), the kernel's compilation) that takes longer
+# than this is announced, so the user knows what minidem is waiting for.
+SLOW_NOTICE_S = 2.0
+
+
+@contextlib.contextmanager
+def _notice_if_slow(notify, text: str):
+    """Call ``notify(text)`` (from a timer thread) if the block runs longer than SLOW_NOTICE_S."""
+    if notify is None:
+        yield
+        return
+    import threading
+
+    timer = threading.Timer(SLOW_NOTICE_S, notify, args=(f"{text} ({SLOW_NOTICE_S:g} s so far)",))
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
 
 
 def interrupted(exc: BaseException) -> bool:

@@ -35,7 +35,9 @@ def _is_positive_finite(value) -> bool:
 def _extremity(value: float) -> float:
     """How far a value is from ordinary magnitudes, in decades (0 and 1 are ordinary)."""
     value = abs(float(value))
-    return 0.0 if value == 0.0 or not math.isfinite(value) else abs(math.log10(value))
+    if not math.isfinite(value):
+        return math.inf  # an overflowed input (a norm of 1e300 components) is the most extreme
+    return 0.0 if value == 0.0 else abs(math.log10(value))
 
 
 def _suspects(inputs: list[tuple[str, float]]) -> str:
@@ -64,11 +66,11 @@ def scene_inputs(scene) -> list[tuple[str, float]]:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             inputs.append((f"{section}.{key}", float(value)))
     if scene.n_particles:
-        speeds = np.linalg.norm(scene.velocity, axis=1)
+        speeds = np.abs(scene.velocity).max(axis=1)
         fastest = int(np.argmax(speeds))
         if speeds[fastest] > 0.0 and scene.impact is None:
             inputs.append((_key_of(_particle_name(scene, fastest), "velocity"), float(speeds[fastest])))
-    gravity = float(np.linalg.norm(scene.gravity))
+    gravity = float(np.abs(scene.gravity).max())  # the largest component: a norm could overflow
     if gravity > 0.0:
         inputs.append(("run.gravity", gravity))
     return inputs
@@ -167,6 +169,12 @@ def check_simulation(sim) -> None:
         raise refusal(scene, f"contact law '{sim.law.name}' constants {sim.constants.tolist()}")
     if not _is_positive_finite(sim.dt):
         raise refusal(scene, f"time step {sim.dt!r} s ({sim.dt_reason})")
+    try:
+        half_skin_squared = (0.5 * sim.skin) ** 2  # what the neighbour lists compare against
+    except OverflowError:
+        half_skin_squared = math.inf
+    if not math.isfinite(half_skin_squared):
+        raise refusal(scene, f"neighbour-list skin {sim.skin:.6g} m squared", [("run.skin", sim.skin)])
     contact_time = sim.reference_contact_time
     if not (contact_time > 0.0):
         raise refusal(scene, f"contact time {contact_time!r} s")
