@@ -1088,15 +1088,28 @@ class Simulation:
 def _interrupts_deferred():
     """Hold SIGINT and SIGTERM for the duration of the block: they are delivered (and
     raise KeyboardInterrupt through the CLI's handler) as soon as it ends, so that the
-    copy of the last good state, which a Ctrl-C writes as the checkpoint, is never torn."""
-    if not hasattr(signal, "pthread_sigmask"):  # not on Windows: no deferral there
+    copy of the last good state, which a Ctrl-C writes as the checkpoint, is never torn.
+
+    The handlers are swapped for one that only records the signal (a signal mask would
+    hold it in this thread only: a Ctrl-C sent to the process, delivered to one of
+    numba's threads, would still raise here, and inside a compiled function's
+    dispatcher that was 'SystemError: ... returned a result with an exception set').
+    Outside the main thread (a Dask worker's) Python delivers no signal: nothing to hold."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
-    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    caught = []
+    previous = {number: signal.signal(number, lambda signum, frame: caught.append(signum))
+                for number in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+        if caught:  # now, to the handlers the run had (KeyboardInterrupt, or the CLI's SIGTERM)
+            signal.raise_signal(caught[0])
 
 
 # A step of the set-up (a law's prepare(), the kernel's compilation) that takes longer

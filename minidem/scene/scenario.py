@@ -438,7 +438,7 @@ class _Errors:
         """Whether a message about ``where`` or any of its keys was already added: a table
         with a bad value is not used further (its other values would be combined with
         the None the bad one was dropped to)."""
-        return any(m.startswith((f"{where}: ", f"{where}.")) for m in self.messages)
+        return any(m.startswith((f"{where}: ", f"{where}.", f"{where}[")) for m in self.messages)
 
     def raise_if_any(self) -> None:
         if self.messages:
@@ -691,8 +691,9 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         values = _check_table(data["impact"], SCHEMA["impact"][1], "impact", errors)
         wall = values.get("wall")
         if isinstance(wall, int) and not 0 <= wall < len(wall_normal):
-            errors.add("impact.wall", f"wall index {wall} does not exist: the scenario has "
-                       f"{len(wall_normal)} valid wall(s) (an [[walls]] plane is needed)")
+            if not errors.has_under("walls"):  # a bad [[walls]] table is reported already
+                errors.add("impact.wall", f"wall index {wall} does not exist: the scenario has "
+                           f"{len(wall_normal)} valid wall(s) (an [[walls]] plane is needed)")
         elif all(isinstance(values.get(k), float) for k in ("radius", "speed", "angle_deg", "spin", "gap")):
             if values["angle_deg"] >= 90.0 and not errors.has("impact.angle_deg"):
                 errors.add("impact.angle_deg", "must be < 90 deg (90 is parallel to the wall: no impact)")
