@@ -246,31 +246,42 @@ def collect(client, function, batches_of_tasks, groups, max_attempts: int) -> It
         return []
 
     try:
-        for future in _while_scheduler_answers(client, pending):
-            index = futures.pop(future)
-            status = future.status
-            if status == "finished":
-                try:
-                    results = future.result()
-                except Exception as exc:  # noqa: BLE001 - its data went with its worker
-                    future.release()
-                    yield from again(index, f"result lost: {type(exc).__name__}: {exc}")
-                    continue
-                yield from zip(groups[index], results)
-            elif status == "error":
-                exc = future.exception()
-                yield from ((p, Lost(f"{type(exc).__name__}: {exc}")) for p in groups[index])
-            else:  # "lost" / "pending": finished on a worker that died; start it again
-                future.release()
-                yield from again(index, f"result lost with its worker (status {status})")
-                continue
-            future.release()
+        yield from _collect(client, pending, futures, groups, again)
+    except BackendFailure:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a client call after the scheduler went away
+        if client.status == "running":
+            raise
+        raise _scheduler_lost(client, f"{type(exc).__name__}: {exc}", pending.count()) from None
     finally:
         if futures and client.status == "running":  # interrupted: cancel what nobody will wait for
             try:
                 client.cancel(list(futures))
             except Exception:  # noqa: BLE001 - the scheduler went away meanwhile: nothing to cancel
                 pass
+
+
+def _collect(client, pending, futures, groups, again):
+    """The loop of :func:`collect`: ``(position, result)`` of each batch as it comes."""
+    for future in _while_scheduler_answers(client, pending):
+        index = futures.pop(future)
+        status = future.status
+        if status == "finished":
+            try:
+                results = future.result()
+            except Exception as exc:  # noqa: BLE001 - its data went with its worker
+                future.release()
+                yield from again(index, f"result lost: {type(exc).__name__}: {exc}")
+                continue
+            yield from zip(groups[index], results)
+        elif status == "error":
+            exc = future.exception()
+            yield from ((p, Lost(f"{type(exc).__name__}: {exc}")) for p in groups[index])
+        else:  # "lost" / "pending": finished on a worker that died; start it again
+            future.release()
+            yield from again(index, f"result lost with its worker (status {status})")
+            continue
+        future.release()
 
 
 # A scheduler the client cannot reach for this long is lost: the sweep stops (exit 1,
@@ -294,13 +305,16 @@ def _while_scheduler_answers(client, pending, poll_s: float = 0.2):
         else:
             unreachable_since = unreachable_since or time.monotonic()
             if client.status in ("closed", "closing") or time.monotonic() - unreachable_since > SCHEDULER_LOST_S:
-                raise BackendFailure(
-                    f"lost the Dask scheduler {getattr(client, 'scheduler', None) and client.scheduler.address}: "
-                    f"the client has been disconnected (status '{client.status}') for "
-                    f"{time.monotonic() - unreachable_since:.0f} s; {pending.count()} batch(es) of cases did not "
-                    "come back. Restart the scheduler and run the same command again: the finished cases are "
-                    "kept in the journal")
+                raise _scheduler_lost(client, f"disconnected for {time.monotonic() - unreachable_since:.0f} s",
+                                      pending.count())
         time.sleep(poll_s)
+
+
+def _scheduler_lost(client, detail: str, batches_left: int) -> BackendFailure:
+    address = getattr(getattr(client, "scheduler", None), "address", None) or "(unknown address)"
+    return BackendFailure(f"lost the Dask scheduler {address} (client status '{client.status}': {detail}); "
+                          f"{batches_left} batch(es) of cases did not come back. Restart the scheduler and run the "
+                          "same command again: the finished cases are kept in the journal")
 
 
 def from_options(scheduler: str | None, workers: int) -> Executor:
