@@ -25,6 +25,7 @@ import numpy as np
 import pytest
 
 from conftest import OBLIQUE, REPO, minidem_command, run_cli
+from test_scenario_errors import SPHERES
 from minidem import cli, files
 from minidem.engine import checkpoint, simulation
 from minidem.scene import scenario
@@ -188,20 +189,8 @@ def test_a_truncated_or_foreign_stl_is_named_as_such(capsys, tmp_path):
         assert expected in err and "UnicodeDecodeError" not in err and "utf-8" not in err, (name, err)
 
 
-FILL_FILE = textwrap.dedent("""
-    [materials.glass]
-    youngs_modulus = 70e9
-    poisson_ratio = 0.3
-    density = 2650.0
-
-    [contact]
-    law = "hmd"
-    friction = 0.1
-
-    [[walls]]
-    normal = [0.0, 0.0, 1.0]
-    material = "glass"
-
+# the materials, law and floor of the malformed-input battery's two-sphere scene, filled from a CSV
+FILL_FILE = SPHERES.split("[[particles]]")[0] + textwrap.dedent("""
     [[fill]]
     kind = "file"
     file = "spheres.csv"
