@@ -11,10 +11,11 @@ import os
 from pathlib import Path
 
 
-class OutputError(Exception):
+class OutputError(OSError):
     """A result file could not be written (disk full, quota, permissions, a vanished
     directory): the CLI names the file and exits with code 1. The temporary file is gone
-    and the file's previous version, if any, is untouched."""
+    and the file's previous version, if any, is untouched. An OSError still (code that
+    catches those keeps working), whose message names the file."""
 
 
 def output_error(path, exc: OSError) -> OutputError:
