@@ -1107,7 +1107,9 @@ def _interrupts_deferred():
         yield
     finally:
         for number, handler in previous.items():
-            signal.signal(number, handler)
+            # None: a handler installed outside Python (an embedding application) cannot be
+            # put back from here; the default action is the closest
+            signal.signal(number, handler if handler is not None else signal.SIG_DFL)
         if caught:  # now, to the handlers the run had (KeyboardInterrupt, or the CLI's SIGTERM)
             signal.raise_signal(caught[0])
 
