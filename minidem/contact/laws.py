@@ -363,6 +363,9 @@ class ContactPart:
                   effective_radius) -> J``, an upper bound of the kinetic energy one contact
                   can give its bodies (adhesion: the depth of its potential well); the
                   energy guard and ``minidem verify`` allow it per contact
+    pull_off      adhesive normal parts, optional: ``pull_off(pair, constants,
+                  effective_radius) -> N``, the largest tensile force (JKR 3/2 pi gamma R*);
+                  ``minidem verify`` checks a rebound against it
     contact_time  normal parts: ``contact_time(pair, constants, effective_radius,
                   effective_mass, normal_speed) -> s``, for the automatic time step
     stiffness     normal parts: ``stiffness(pair, constants, R*, m*, overlap) -> kn``;
@@ -386,6 +389,7 @@ class ContactPart:
     stiffness: Callable | None = None
     reference: str = ""
     supply_bound: Callable | None = None
+    pull_off: Callable | None = None
 
     @property
     def history_size(self) -> int:

@@ -322,6 +322,9 @@ class RunResult:
     contact_statistics: bool = True
     # the largest work gravity did on the particles since t = 0 (J), at the run's checks
     gravity_work_max: float = 0.0
+    # the most kinetic energy the contacts can supply at once (J): adhesion's bound per
+    # contact times the most contacts (Simulation._prepare_reach); 0 for passive laws
+    supply_budget: float = 0.0
 
 
 # State arrays a checkpoint holds: particle arrays, then the contact arrays of each
@@ -1097,7 +1100,7 @@ class Simulation:
             trace=np.concatenate(trace_chunks) if trace_chunks else None, force=state.force, torque=state.torque,
             contacts=state.count_contacts(), neighbour_builds=state.builds, threads=loop_threads.most_used(),
             thread_steps=dict(loop_threads.steps),
-            energy=np.array(energy), contact_statistics=not self.parallel, gravity_work_max=loop["gravity_work_max"],
+            energy=np.array(energy), contact_statistics=not self.parallel, gravity_work_max=loop["gravity_work_max"], supply_budget=self.supply_budget,
         )
 
     def _fault_message(self, status, steps) -> str:

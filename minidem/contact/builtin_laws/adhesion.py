@@ -129,6 +129,7 @@ JKR = ContactPart(
     contact_time=lambda pair, c, radius, mass, speed: hertz_contact_time(pair.effective_modulus, radius, mass, speed),
     stiffness=_jkr_stiffness,
     supply_bound=_jkr_supply_bound,
+    pull_off=lambda pair, c, radius: 1.5 * math.pi * c["surface_energy"] * radius,
     reference=JKR_REFERENCE,
 )
 
@@ -165,6 +166,7 @@ DMT = ContactPart(
     contact_time=lambda pair, c, radius, mass, speed: hertz_contact_time(pair.effective_modulus, radius, mass, speed),
     stiffness=lambda pair, c, radius, mass, overlap: 2.0 * pair.effective_modulus * math.sqrt(radius * overlap),
     supply_bound=_dmt_supply_bound,
+    pull_off=lambda pair, c, radius: 2.0 * math.pi * c["surface_energy"] * radius,
     reference=DMT_REFERENCE,
 )
 
