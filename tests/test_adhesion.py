@@ -16,8 +16,9 @@ The work of separation, the integral of -Fn from d_c to 0, is W_s = 0.662996 pi 
 a_z^3 = 2 pi gamma R*^2 / E* (with a = a_z t: -Fn dd = pi gamma a_z^2 (28/3 t^2.5 - 2 t -
 16/3 t^4) dt from t_c = 16^(-1/3) to 1). An undamped impact loses exactly W_s (the curve
 is conservative between touch and break; the force jumps at fixed d), so a sphere sticks
-below v_c = sqrt(2 W_s / m*) (Thornton & Ning 1998's sticking velocity for an elastic
-adhesive sphere) and rebounds above with e = sqrt(1 - (v_c / v)^2).
+below v_c = sqrt(2 W_s / m*) and rebounds above with e = sqrt(1 - (v_c / v)^2): the
+sticking criterion of Thornton & Ning (1998), impact energy against the work of
+separation, with W_s integrated here from the JKR curve (not their rounded constant).
 """
 
 from __future__ import annotations
