@@ -212,3 +212,15 @@ def test_adhesive_combination_passes_the_whole_battery():
     failed = [c for c in checks if c.passed is False]
     assert not failed, verify.format_table(failed)
     assert sum(c.passed is None and c.value.startswith("skipped: the combination has an adhesive") for c in checks) == 3
+
+
+def test_reach_with_mesh_walls_is_refused_with_the_reason():
+    # mesh contacts follow one feature region per contact at overlap > 0 only: a law
+    # acting beyond touch is refused there (exit 2 through the CLI), not run wrongly
+    from conftest import REPO
+    from minidem.contact import laws
+
+    scene = scenario.load_scene(REPO / "scenarios" / "hopper.toml",
+                                ['contact.law="jkr+tsuji+mindlin"', "contact.surface_energy=0.1"])
+    with pytest.raises(laws.LawError, match="acts beyond touch .* mesh walls do not support that yet"):
+        simulation.Simulation(scene, compile=False)
