@@ -23,7 +23,8 @@ import math
 
 import numba
 
-from minidem.contact.laws import ContactPart, HistorySlot, Parameter, hertz_contact_time
+from minidem.contact.builtin_laws.parts import HERTZ
+from minidem.contact.laws import ContactPart, HistorySlot, Parameter
 
 SURFACE_ENERGY = Parameter(
     "surface_energy", None, "J/m^2", "work of adhesion gamma per unit contact area (JKR pull-off "
@@ -126,7 +127,7 @@ JKR = ContactPart(
     # and Mindlin's stiffness apply at the JKR contact radius, as in LAMMPS' granular jkr
     provides=("hertzian", "adhesive"),
     reach=_jkr_reach,
-    contact_time=lambda pair, c, radius, mass, speed: hertz_contact_time(pair.effective_modulus, radius, mass, speed),
+    contact_time=HERTZ.contact_time,  # Hertz's duration (eq 13): the time step's scale
     stiffness=_jkr_stiffness,
     supply_bound=_jkr_supply_bound,
     pull_off=lambda pair, c, radius: 1.5 * math.pi * c["surface_energy"] * radius,
@@ -163,7 +164,7 @@ DMT = ContactPart(
     function=dmt_normal,
     energy=("store", "supply"),
     provides=("hertzian", "adhesive"),
-    contact_time=lambda pair, c, radius, mass, speed: hertz_contact_time(pair.effective_modulus, radius, mass, speed),
+    contact_time=HERTZ.contact_time,  # Hertz's duration (eq 13): the time step's scale
     stiffness=lambda pair, c, radius, mass, overlap: 2.0 * pair.effective_modulus * math.sqrt(radius * overlap),
     supply_bound=_dmt_supply_bound,
     pull_off=lambda pair, c, radius: 2.0 * math.pi * c["surface_energy"] * radius,
