@@ -146,11 +146,12 @@ def note_peaks(stats, overlap, fn, ftx, fty, ftz):
 
 
 @numba.njit(cache=True, inline="always")
-def engaged_above(constants_row):
+def engaged_above(constants, row):
     """The overlap above which a contact lives: 0, or -reach for a law acting beyond
-    touch (REACH: the last column of the row; a compile-time branch)."""
+    touch (REACH: the last column of its constants row; a compile-time branch, so a law
+    without reach reads nothing and compares with 0 as before)."""
     if REACH:
-        return -constants_row[constants_row.shape[0] - 1]
+        return -constants[row, constants.shape[1] - 1]
     return 0.0
 
 
@@ -322,8 +323,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
             wall_overlap[i, w] = overlap
             if TRACK:
                 note_transitions(stats, time, dt, overlap, previous)
-            wall_row = constants[pair_row[mat, wall_material[w]]]
-            lives_above = engaged_above(wall_row)
+            lives_above = engaged_above(constants, pair_row[mat, wall_material[w]])
             if overlap <= lives_above:
                 if previous > lives_above:
                     wall_history[i, w, :] = 0.0  # contact ends: its history is dropped
@@ -332,7 +332,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 fault(status, TUNNELLED, i, w, PLANE)
                 break
             acc, _, _, _, fn, ft, increment, ok = evaluate_contact(
-                acc, wall_row, wall_history[i, w], overlap, previous,
+                acc, constants[pair_row[mat, wall_material[w]]], wall_history[i, w], overlap, previous,
                 (wall_normal[w, 0], wall_normal[w, 1], wall_normal[w, 2]), False, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi,
                 dt, stats)
             if not ok:
@@ -346,7 +346,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 probe[PROBE_DISPLACEMENT + 1] += increment[1]
                 probe[PROBE_DISPLACEMENT + 2] += increment[2]
         if TRACK and i == 0 and 0 <= probe_wall and wall_overlap[0, probe_wall] <= engaged_above(
-                constants[pair_row[mat, wall_material[probe_wall]]]):
+                constants, pair_row[mat, wall_material[probe_wall]]):
             probe[PROBE_OVERLAP], probe[PROBE_FN] = wall_overlap[0, probe_wall], 0.0
             probe[PROBE_FT], probe[PROBE_FT + 1], probe[PROBE_FT + 2] = 0.0, 0.0, 0.0
 
@@ -357,8 +357,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 cylinder_overlap_prev[i, c] = overlap
                 if TRACK:
                     note_transitions(stats, time, dt, overlap, previous)
-                cylinder_row = constants[pair_row[mat, cylinder_material[c]]]
-                lives_above = engaged_above(cylinder_row)
+                lives_above = engaged_above(constants, pair_row[mat, cylinder_material[c]])
                 if overlap <= lives_above or overlap >= ri:
                     if overlap <= lives_above < previous:
                         cylinder_history[i, c, :] = 0.0
@@ -367,7 +366,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                         break
                     continue
                 acc, _, _, _, _, _, _, ok = evaluate_contact(
-                    acc, cylinder_row, cylinder_history[i, c], overlap, previous,
+                    acc, constants[pair_row[mat, cylinder_material[c]]], cylinder_history[i, c], overlap, previous,
                     (nx, ny, nz), True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)
                 if not ok:
                     fault(status, NON_FINITE_FORCE, i, c, CYLINDER)
@@ -459,7 +458,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 reach = ri + radius[j]
                 lives_above = 0.0
                 if REACH:  # compile-time: a contact lives while the distance is below r_i + r_j + reach
-                    lives_above = engaged_above(constants[pair_row[mat, material[j]]])
+                    lives_above = engaged_above(constants, pair_row[mat, material[j]])
                     touching = distance_squared < (reach - lives_above) * (reach - lives_above)
                 else:
                     touching = distance_squared < reach * reach
