@@ -67,8 +67,7 @@ def print_summary(summary: dict, out=None) -> None:
 
 
 def command_run(args) -> int:
-    from minidem.results import analysis
-    from minidem import files
+    from minidem.results.output import write_run_files
     from minidem.scene import scenario
     from minidem.engine import simulation
     from minidem.studies import sweep
@@ -122,12 +121,7 @@ def command_run(args) -> int:
             signal.signal(signal.SIGTERM, previous_sigterm)
             if frames is not None:
                 frames.close()
-    summary = analysis.summary(result)
-    files.write_json(directory / "summary.json", summary)
-    if result.trace is not None:
-        from minidem.engine.kernel import TRACE_COLUMNS
-
-        files.write_csv(directory / "trace.csv", TRACE_COLUMNS, result.trace.tolist())
+    summary = write_run_files(directory, result)
     if not args.quiet:
         print_summary(summary)
         for warning in summary["warnings"]:

@@ -29,6 +29,7 @@ import numpy as np
 
 from minidem import __version__, laws
 from minidem.engine import integrate, kernel
+from minidem.errors import MinidemError
 from minidem.geometry import neighbours, primitives
 from minidem.scene.scenario import Scene, ScenarioError
 
@@ -133,7 +134,7 @@ class LoopThreads:
         return max(self.steps, key=self.steps.get) if self.steps else self.current
 
 
-class RunFailure(Exception):
+class RunFailure(MinidemError):
     """The run started but could not finish: the CLI exits with code 1."""
 
 
