@@ -104,7 +104,9 @@ class _Scene:
                    lower[2] - margin, upper[2] + margin]
             shown = walls.clip_box(box, invert=False)
             if shown.n_cells:
-                self.plotter.add_mesh(shown, color="lightgrey", opacity=0.3, show_edges=False)
+                # back faces culled: a wall's normal points to the particles (walls.vtu keeps it), so
+                # the walls between the camera and the particles are not drawn over them
+                self.plotter.add_mesh(shown, color="lightgrey", opacity=0.5, culling="back")
         self.actor = None
         self.text = None
         self.placed = False
@@ -116,7 +118,8 @@ class _Scene:
         self.actor = self.plotter.add_mesh(
             _spheres(mesh, values), scalars="colour", clim=self.range, cmap="viridis", smooth_shading=True,
             scalar_bar_args={"title": self.title, "color": "black", "vertical": False, "width": 0.5,
-                             "position_x": 0.25, "position_y": 0.03})
+                             "height": 0.08, "position_x": 0.25, "position_y": 0.02, "fmt": "%.3g",
+                             "title_font_size": 14, "label_font_size": 12})
         if self.text is not None:
             self.plotter.remove_actor(self.text)
         if time_s is not None:
