@@ -37,7 +37,7 @@ class NoRenderWindow(RenderError):
     """No off-screen OpenGL context on this machine (a missing EGL driver)."""
 
 
-def _headless() -> None:
+def off_screen() -> None:
     """Off-screen rendering: with no X display, VTK's EGL window (not an X one that
     fails with an error message first)."""
     if not os.environ.get("DISPLAY") and sys.platform.startswith("linux"):
@@ -76,7 +76,7 @@ class _Scene:
     def __init__(self, walls, frames: list, name: str, window=WINDOW):
         import pyvista
 
-        _headless()
+        off_screen()
         try:
             self.plotter = pyvista.Plotter(off_screen=True, window_size=list(window))
         except Exception as exc:  # noqa: BLE001 - VTK raises many kinds when no OpenGL context can be had
