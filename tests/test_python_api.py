@@ -202,6 +202,9 @@ def test_every_example_of_the_python_api_page_runs_and_prints_what_it_shows(tmp_
         for line in _printed_lines(block):
             assert line in output, f"block {k}: the page shows {line!r}, the run printed {output}"
     assert (tmp_path / "cradle.png").exists() and (tmp_path / "out" / "cradle" / "render.gif").exists()
+    for k, block in enumerate(_python_blocks((REPO / "README.md").read_text())):  # the README's taste of it
+        with redirect_stdout(io.StringIO()):
+            exec(compile(block, f"README.md block {k}", "exec"), {})
 
 
 def _example(name: str, *args, cwd) -> str:
