@@ -127,58 +127,51 @@ class Output:
         path = self.directory / name
         return path if path.exists() else None
 
-    def _cached(self, key, load):
-        if key not in self._cache:
-            self._cache[key] = load()
-        return self._cache[key]
+    def _cached(self, name: str, load):
+        """``load(path)`` of the file ``name`` in the directory, once; None if there is no such file."""
+        if name not in self._cache:
+            path = self._file(name)
+            self._cache[name] = load(path) if path else None
+        return self._cache[name]
 
     @property
     def summary(self) -> dict | None:
-        path = self._file("summary.json")
-        return self._cached("summary", lambda: json.loads(path.read_text()) if path else None)
+        return self._cached("summary.json", lambda path: json.loads(path.read_text()))
 
-    def _state(self):
+    def _state(self) -> tuple:
         from minidem.engine import checkpoint
 
-        path = self._file(checkpoint.FINAL_STATE)
-        return checkpoint.read(path) if path else (None, None)
+        return self._cached(checkpoint.FINAL_STATE, checkpoint.read) or (None, None)
 
     @property
     def final_state(self) -> dict | None:
-        return self._cached("state", self._state)[0]
+        return self._state()[0]
 
     @property
     def final_meta(self) -> dict | None:
-        return self._cached("state", self._state)[1]
+        return self._state()[1]
 
     @property
     def trace(self) -> dict | None:
-        path = self._file("trace.csv")
-        return self._cached("trace", lambda: read_columns(path) if path else None)
+        return self._cached("trace.csv", read_columns)
 
     @property
     def sweep(self) -> dict | None:
-        path = self._file("sweep.csv")
-        return self._cached("sweep", lambda: read_columns(path) if path else None)
+        return self._cached("sweep.csv", read_columns)
 
     @property
     def series(self) -> Series | None:
-        path = self._file("particles.pvd")
-        return self._cached("series", lambda: Series(path) if path else None)
+        return self._cached("particles.pvd", Series)
 
     @property
     def contacts(self) -> Series | None:
-        path = self._file("particles_contacts.pvd")
-        return self._cached("contacts", lambda: Series(path) if path else None)
+        return self._cached("particles_contacts.pvd", Series)
 
     @property
     def walls(self):
-        path = self._file("walls.vtu")
-        if path is None:
-            return None
         import pyvista
 
-        return self._cached("walls", lambda: pyvista.read(path))
+        return self._cached("walls.vtu", pyvista.read)
 
     def __repr__(self) -> str:
         held = [name for name in ("summary.json", "final_state.npz", "trace.csv", "sweep.csv", "particles.pvd",
