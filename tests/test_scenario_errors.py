@@ -95,7 +95,7 @@ CASES = {
                      "Available: hm, hmd, hmdns_integral, hmdns_integral_reset, ls, lth"]),
     "unknown_law_parameter": (None, ["--set", "contact.frcition=0.2"],
                               ["contact", "unknown parameter 'frcition' for law 'hmd'", "did you mean 'friction'?",
-                               "valid: friction, restitution, reversal_check"]),
+                               "valid: friction, partial_slip_reversal_check, restitution, reversal_check, special_case"]),
     "missing_law_parameter": (edit("friction = 0.1\n", ""), [],
                               ["contact", "law 'hmd' needs parameter 'friction'", "bounds [0, inf)"]),
     "negative_radius": (edit("radius = 0.025 ", "radius = -0.025 "), [], ["impact.radius", "must be > 0 m", "-0.025"]),
