@@ -3,7 +3,9 @@ from :class:`MinidemError`.
 
 * ``minidem.ScenarioError`` (bad input: a scenario key, a file, an option; the CLI exits 2),
 * ``minidem.LawError`` (an unknown or broken contact law; exit 2),
-* ``minidem.RunFailure`` (the run started and could not finish: a blow-up; exit 1).
+* ``minidem.RunFailure`` (the run started and could not finish: a blow-up; exit 1),
+* ``minidem.OutputError`` (a result file could not be written: disk full, permissions; exit 1;
+  an OSError too).
 
 It lives in a module of its own, below every stage, so that each stage can derive its
 error from it without importing another stage.

@@ -98,8 +98,9 @@ def test_a_bad_key_is_named_and_caught_as_minidem_error(tmp_path):
     # the array shapes particles() takes are checked before the validator
     with pytest.raises(minidem.ScenarioError, match=r"particles\(velocity=\.\.\.\): expected .*shape \(2, 3\)"):
         minidem.Scenario().particles(np.zeros((2, 3)), 0.01, "glass", velocity=np.zeros((3, 3)))
-    for error in (minidem.ScenarioError, minidem.LawError, minidem.RunFailure):
+    for error in (minidem.ScenarioError, minidem.LawError, minidem.RunFailure, minidem.OutputError):
         assert issubclass(error, minidem.MinidemError)
+    assert issubclass(minidem.OutputError, OSError)  # code catching OSError for a full disk still does
 
 
 def test_a_sweep_from_python_returns_the_table_of_sweep_csv(tmp_path):

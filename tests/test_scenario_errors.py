@@ -334,8 +334,12 @@ def no_compile(monkeypatch):
     """A bad output directory must be refused before anything is compiled or run."""
     from minidem.engine import simulation
 
-    def refuse(*args, **kwargs):
-        raise AssertionError("the simulation was built before the output directory was checked")
+    real = simulation.Simulation
+
+    def refuse(*args, compile=True, **kwargs):
+        if compile:  # validation alone (a sweep's every case, compile=False) compiles nothing
+            raise AssertionError("the simulation was built before the output directory was checked")
+        return real(*args, compile=False, **kwargs)
 
     monkeypatch.setattr(simulation, "Simulation", refuse)
 
