@@ -121,7 +121,7 @@ def test_a_sweep_from_python_returns_the_table_of_sweep_csv(tmp_path):
     with pytest.raises(KeyError, match="'y3': not a column"):
         table["y3"]
     # every case is validated before any runs, the bad one named
-    with pytest.raises(minidem.ScenarioError, match=r"(?s)sweep case 1 \(impact.angle_deg = 95.0\).*impact.angle_deg: must be <= 90 deg"):
+    with pytest.raises(minidem.ScenarioError, match=r"(?s)sweep case 1 \(impact.angle_deg = 95.0\).*impact.angle_deg: must be < 90 deg, got 95"):
         minidem.sweep(OBLIQUE, cases={"impact.angle_deg": [10.0, 95.0]}, workers=1)
 
 
