@@ -31,6 +31,7 @@ from typing import Any, Callable, Mapping
 import pluggy
 
 from minidem.contact import hookspecs
+from minidem.errors import MinidemError
 
 ENTRY_POINT_GROUP = hookspecs.PROJECT_NAME
 _NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_]*$")
@@ -380,7 +381,7 @@ class Preset:
     reference: str = ""
 
 
-class LawError(Exception):
+class LawError(MinidemError):
     """A law is unknown, broken, or its declaration or constants are invalid."""
 
 

@@ -31,6 +31,7 @@ import numpy as np
 from minidem import __version__
 from minidem.contact import laws
 from minidem.engine import integrate, kernel
+from minidem.errors import MinidemError
 from minidem.geometry import neighbours, primitives
 from minidem.scene import derived
 from minidem.scene.scenario import Scene, ScenarioError
@@ -136,7 +137,7 @@ class LoopThreads:
         return max(self.steps, key=self.steps.get) if self.steps else self.current
 
 
-class RunFailure(Exception):
+class RunFailure(MinidemError):
     """The run started but could not finish: the CLI exits with code 1."""
 
 

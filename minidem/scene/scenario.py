@@ -20,8 +20,10 @@ from typing import Any
 
 import numpy as np
 
+from minidem.errors import MinidemError
 
-class ScenarioError(Exception):
+
+class ScenarioError(MinidemError):
     """Bad input: the CLI prints the message and exits with code 2."""
 
 

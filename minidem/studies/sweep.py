@@ -436,15 +436,7 @@ def _run_locked(sweep, directory, progress, workers, executor, restart, echo) ->
         journal.start({"minidem_sweep_journal": JOURNAL_FORMAT, "plan": digest, "cases": n,
                        "source": sweep.source, "keys": sweep.keys})
 
-    laws = _laws_of(sweep)
-    fingerprint = code_fingerprint(laws)
     pending = [i for i in range(n) if i not in done]
-    tasks = [Case(i, sweep.base, tuple(sweep.overrides(i)), sweep.source, sweep.keep_traces, laws, fingerprint)
-             for i in pending]
-    # the first case of each law first and on its own: the workers compile the kernels in parallel
-    first_of_law: dict[Any, int] = {}
-    for position, index in enumerate(pending):
-        first_of_law.setdefault(_law_of(sweep, index), position)
     owned = executor is None
     if executor is None:
         executor = executors.LocalProcesses(workers if workers is not None else sweep.workers)
@@ -453,8 +445,7 @@ def _run_locked(sweep, directory, progress, workers, executor, restart, echo) ->
     started = wallclock.perf_counter()
     try:
         bar = _progress_bar(n, len(done), progress)
-        for position, row in executor.run(run_case, tasks, warm=list(first_of_law.values())):
-            index = pending[position]
+        for index, row in execute(sweep, pending, executor):
             if isinstance(row, executors.Lost):
                 lost[index] = row.reason
                 continue
@@ -481,20 +472,8 @@ def _run_locked(sweep, directory, progress, workers, executor, restart, echo) ->
             f"The {len(done)} finished case(s) are in {journal.path}: run the same command again to run the rest")
 
     rows = [dict(done[i]) for i in range(n)]
-    swept = [k for k in sweep.keys if k not in ("contact.law", ANGLE_KEY)]
-    columns = list(ROW_COLUMNS) + swept + (["trace_file"] if sweep.keep_traces else []) + ["status", "error"]
-    table = []
-    for row, case in zip(rows, sweep.cases):
-        for key, value in zip(sweep.keys, case):
-            if key not in ("contact.law", ANGLE_KEY):
-                row[key] = value
-        # a failed case has no summary: its law and angle come from the plan
-        if row.get("law") is None:
-            row["law"] = _law_of(sweep, row["case"])
-        if row.get("angle_deg") is None:
-            row["angle_deg"] = (case[sweep.keys.index(ANGLE_KEY)] if ANGLE_KEY in sweep.keys
-                                else sweep.base.get("impact", {}).get("angle_deg"))
-        table.append(["" if row.get(c) is None else row.get(c) for c in columns])
+    columns = table_columns(sweep)
+    table = [["" if row.get(c) is None else row.get(c) for c in columns] for row in complete_rows(sweep, rows)]
     files.write_csv(directory / "sweep.csv", columns, table)
     files.write_json(directory / "sweep.json", {
         "scenario": sweep.source, "cases": n, "failed": sum(1 for r in rows if r["status"] != "ok"),
@@ -502,6 +481,43 @@ def _run_locked(sweep, directory, progress, workers, executor, restart, echo) ->
         "wall_time_s": elapsed, "cases_wall_time_s": sum(r.get("wall_time_s") or 0.0 for r in rows),
         "swept_keys": sweep.keys, "plan": digest,
     })
+    return rows
+
+
+def execute(sweep: SweepPlan, pending: list[int], executor: executors.Executor):
+    """Run the cases ``pending`` (indices into ``sweep.cases``) on ``executor``; yield
+    (case index, row or :class:`executors.Lost`) as they finish, in any order."""
+    laws = _laws_of(sweep)
+    fingerprint = code_fingerprint(laws)
+    tasks = [Case(i, sweep.base, tuple(sweep.overrides(i)), sweep.source, sweep.keep_traces, laws, fingerprint)
+             for i in pending]
+    # the first case of each law first and on its own: the workers compile the kernels in parallel
+    first_of_law: dict[Any, int] = {}
+    for position, index in enumerate(pending):
+        first_of_law.setdefault(_law_of(sweep, index), position)
+    for position, row in executor.run(run_case, tasks, warm=list(first_of_law.values())):
+        yield pending[position], row
+
+
+def table_columns(sweep: SweepPlan) -> list[str]:
+    """The columns of sweep.csv: ROW_COLUMNS, the swept keys other than the law and the
+    angle, trace_file (with keep_traces), status, error."""
+    swept = [k for k in sweep.keys if k not in ("contact.law", ANGLE_KEY)]
+    return list(ROW_COLUMNS) + swept + (["trace_file"] if sweep.keep_traces else []) + ["status", "error"]
+
+
+def complete_rows(sweep: SweepPlan, rows: list[dict]) -> list[dict]:
+    """The rows (in case order) with the swept values set, and a failed case's law and
+    angle taken from the plan (it has no summary): the rows of sweep.csv. Changes ``rows``."""
+    for row, case in zip(rows, sweep.cases):
+        for key, value in zip(sweep.keys, case):
+            if key not in ("contact.law", ANGLE_KEY):
+                row[key] = value
+        if row.get("law") is None:
+            row["law"] = _law_of(sweep, row["case"])
+        if row.get("angle_deg") is None:
+            row["angle_deg"] = (case[sweep.keys.index(ANGLE_KEY)] if ANGLE_KEY in sweep.keys
+                                else sweep.base.get("impact", {}).get("angle_deg"))
     return rows
 
 
