@@ -30,14 +30,14 @@ MARKERS = "os^vDx+*<>ph"
 
 def _series_of(sweep, rows):
     """[(label, [rows])] in first-seen order of the non-angle swept values."""
-    from minidem.sweep import _series
+    from minidem.sweep import _series, series_of_case
 
     keys = sweep.series_keys
     positions = [sweep.keys.index(k) for k in keys]
     groups = {s: [] for s in _series(sweep)}
     for row, case in zip(rows, sweep.cases):
         if not row.get("error"):
-            groups[tuple(case[p] for p in positions)].append(row)
+            groups[series_of_case(case, positions)].append(row)
     labels = sweep.series_labels or [", ".join(_value_label(k, v) for k, v in zip(keys, s)) or "run"
                                      for s in groups]
     return list(zip(labels, groups.values()))

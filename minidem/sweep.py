@@ -198,8 +198,14 @@ def _series(sweep: SweepPlan) -> list[tuple]:
     positions = [sweep.keys.index(k) for k in sweep.series_keys]
     seen: dict[tuple, None] = {}
     for case in sweep.cases:
-        seen.setdefault(tuple(case[p] for p in positions), None)
+        seen.setdefault(series_of_case(case, positions), None)
     return list(seen)
+
+
+def series_of_case(case: tuple, positions: list[int]) -> tuple:
+    """The series a case belongs to: its values of the series keys (a swept table, which
+    is not hashable, as its TOML text)."""
+    return tuple(_toml_value(case[p]) if isinstance(case[p], (dict, list)) else case[p] for p in positions)
 
 
 # ---------------------------------------------------------------------------------
