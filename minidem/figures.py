@@ -199,12 +199,19 @@ def _panels(sweep, rows, path, panels, xlabel):
     series as markers and its theory as a dashed line of the same colour."""
     fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4.2), squeeze=False)
     for ax, (measure, theory, ylabel, scale) in zip(axes[0], panels):
+        drawn = []  # theory curves already drawn: laws that share materials share them
         for i, (label, xs, group) in enumerate(_abscissa_series(sweep, rows)):
             (line,) = ax.plot(xs, _column(group, measure) * scale, marker=MARKERS[i % len(MARKERS)], ms=4, lw=0.8,
                               label=label)
-            if theory is not None:
-                ax.plot(xs, _column(group, theory) * scale, "--", color=line.get_color(), lw=1.0,
-                        label=f"{label}: {'Hertz' if theory.startswith('hertz') else 'rigid body'}")
+            if theory is None:
+                continue
+            curve = _column(group, theory) * scale
+            if any(len(x) == len(xs) and np.allclose(x, xs) and np.allclose(c, curve, equal_nan=True)
+                   for x, c in drawn):
+                continue
+            drawn.append((xs, curve))
+            ax.plot(xs, curve, "--", color=line.get_color(), lw=1.0,
+                    label=f"{label}: {'Hertz' if theory.startswith('hertz') else 'rigid body'}")
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
@@ -219,7 +226,15 @@ def _panels(sweep, rows, path, panels, xlabel):
 
 
 def _abscissa_label(sweep):
-    return sweep.abscissa.replace("impact.", "").replace("particles.0.", "sphere 0 ")
+    """The abscissa's key as a label with its unit from the scenario schema, e.g.
+    "impact.spin (rad/s)", "particles.0.angular_velocity.2 (rad/s)"."""
+    from minidem.scenario import SCHEMA
+
+    parts = sweep.abscissa.split(".")
+    keys = SCHEMA.get(parts[0], (None, ()))[1]
+    names = [p for p in parts[1:] if not p.isdigit()]
+    unit = next((k.unit for k in keys if names and k.name == names[-1]), "")
+    return sweep.abscissa + (f" ({unit})" if unit and unit != "-" else "")
 
 
 def plot_hertz(sweep, rows, path):
