@@ -200,7 +200,9 @@ def _panels(sweep, rows, path, panels, xlabel):
     fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4.2), squeeze=False)
     for ax, (measure, theory, ylabel, scale) in zip(axes[0], panels):
         drawn = []  # theory curves already drawn: laws that share materials share them
-        for i, (label, xs, group) in enumerate(_abscissa_series(sweep, rows)):
+        series = _abscissa_series(sweep, rows)
+        distinct = [] if theory is None else _distinct_curves(series, theory, scale)
+        for i, (label, xs, group) in enumerate(series):
             (line,) = ax.plot(xs, _column(group, measure) * scale, marker=MARKERS[i % len(MARKERS)], ms=4, lw=0.8,
                               label=label)
             if theory is None:
@@ -210,8 +212,9 @@ def _panels(sweep, rows, path, panels, xlabel):
                    for x, c in drawn):
                 continue
             drawn.append((xs, curve))
-            ax.plot(xs, curve, "--", color=line.get_color(), lw=1.0,
-                    label=f"{label}: {'Hertz' if theory.startswith('hertz') else 'rigid body'}")
+            kind = "Hertz theory" if theory.startswith("hertz") else "rigid-body theory"
+            ax.plot(xs, curve, "--", color=line.get_color() if distinct > 1 else "k", lw=1.0,
+                    label=f"{label}: {kind}" if distinct > 1 else kind)
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
@@ -223,6 +226,16 @@ def _panels(sweep, rows, path, panels, xlabel):
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def _distinct_curves(series, theory, scale) -> int:
+    curves = []
+    for _, xs, group in series:
+        curve = _column(group, theory) * scale
+        if not any(len(x) == len(xs) and np.allclose(x, xs) and np.allclose(c, curve, equal_nan=True)
+                   for x, c in curves):
+            curves.append((xs, curve))
+    return len(curves)
 
 
 def _abscissa_label(sweep):

@@ -207,7 +207,9 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
             '"rebound" figures (default impact.angle_deg); the curves are the other keys\' values'),
     ), "A parameter sweep: `minidem run` runs every case (in parallel: local processes, or a Dask "
        "cluster with `--scheduler`) and writes OUT/sweep.csv (case, law, angle_deg, x, y1, y2, et, en, "
-       "contact_duration_s, energy_ratio, max_overlap_m, steps, dt_s, the swept keys, status, error; the "
+       "contact_duration_s, energy_ratio, max_overlap_m, steps, dt_s, peak_normal_force_n, the collision "
+       "measures of docs/chung-ooi.md when a hertz, restitution or rebound figure is asked for, the swept keys, "
+       "status, error; the "
        "same file for any back end and worker count) and the figures. Finished cases are journalled in "
        "OUT/sweep.journal: running the same command again resumes an interrupted sweep. See "
        "docs/paper-reproduction.md and docs/sweeps-on-a-cluster.md."),
