@@ -846,6 +846,8 @@ def _fill(table, where, source, errors, material_of, position, velocity, spin, r
 def _impact_velocity(table: dict, values: dict, errors: _Errors) -> None:
     """[impact] velocity as speed and angle_deg, or as normal_speed and tangential_speed:
     the second form is turned into the first (values is updated)."""
+    if not isinstance(table, dict):
+        return  # _check_table has said what [impact] should be
     components = [k for k in ("normal_speed", "tangential_speed") if k in table]
     if not components:
         if "speed" not in table:
