@@ -1,9 +1,16 @@
 """minidem: a small, fast, plugin-based soft-sphere DEM framework.
 
-Data flows one way: scenario file (``scenario``) -> validated scene -> compiled
-simulation (``simulation``, ``kernel``, ``contact``, ``integrate``) -> results
-(``analysis``) and output writers (``output``). Contact laws are plugins (``laws``,
-``hookspecs``).
+Data flows one way, and the subpackages follow it:
+
+    scene/     scenario file (TOML) or dict -> validated Scene
+    engine/    Scene -> compiled simulation -> RunResult
+    results/   RunResult -> rebound measures, summaries, VTK series
+    studies/   built on the above: sweeps, verify, reference solution, benchmarks
+
+below them ``geometry/`` (contact geometry, neighbour search, wall shapes) and
+``files`` (atomic writes), beside them the contact-law plugin API (``laws``,
+``hookspecs``, ``builtin_laws``); ``cli`` on top. No module imports one of a later
+stage.
 """
 
 __version__ = "0.1.0"

@@ -67,9 +67,13 @@ def print_summary(summary: dict, out=None) -> None:
 
 
 def command_run(args) -> int:
-    from minidem import analysis, output, scenario, simulation, sweep
+    from minidem.results import analysis
+    from minidem import files
+    from minidem.scene import scenario
+    from minidem.engine import simulation
+    from minidem.studies import sweep
 
-    from minidem.output import checkpoint
+    from minidem.engine import checkpoint
 
     data = scenario.read_toml(args.file)
     if sweep.has_sweep(data):
@@ -101,7 +105,7 @@ def command_run(args) -> int:
         print(f"  analytic flight to the first touch: the steps start at t = {sim.start_time:.6g} s")
     frames = None
     if scene.vtk:
-        from minidem.output.vtk import SimulationFrames
+        from minidem.results.vtk import SimulationFrames
 
         frames = SimulationFrames(sim, directory)
     previous_sigterm = signal.signal(signal.SIGTERM, _terminate)
@@ -119,11 +123,11 @@ def command_run(args) -> int:
             if frames is not None:
                 frames.close()
     summary = analysis.summary(result)
-    output.write_json(directory / "summary.json", summary)
+    files.write_json(directory / "summary.json", summary)
     if result.trace is not None:
-        from minidem.kernel import TRACE_COLUMNS
+        from minidem.engine.kernel import TRACE_COLUMNS
 
-        output.write_csv(directory / "trace.csv", TRACE_COLUMNS, result.trace.tolist())
+        files.write_csv(directory / "trace.csv", TRACE_COLUMNS, result.trace.tolist())
     if not args.quiet:
         print_summary(summary)
         for warning in summary["warnings"]:
@@ -199,11 +203,11 @@ def command_laws(args) -> int:
 
 
 def command_docs(args) -> int:
-    from minidem import scenario
+    from minidem.scene import scenario
 
     text = scenario.reference_markdown()
     if args.write:
-        from minidem.output import atomic_write
+        from minidem.files import atomic_write
 
         atomic_write(args.write, text)
     else:
@@ -212,13 +216,13 @@ def command_docs(args) -> int:
 
 
 def command_bench(args) -> int:
-    from minidem import bench
+    from minidem.studies import bench
 
     return bench.command(args)
 
 
 def command_verify(args) -> int:
-    from minidem import verify
+    from minidem.studies import verify
 
     out = args.out or Path("out") / f"verify-{args.law}"
     checks = verify.run_battery(args.law, args.set, out)
@@ -318,8 +322,8 @@ class _PipeClosedSink:
 
 def main(argv=None) -> int:
     from minidem.laws import LawError
-    from minidem.scenario import ScenarioError
-    from minidem.simulation import RunFailure
+    from minidem.scene.scenario import ScenarioError
+    from minidem.engine.simulation import RunFailure
 
     if argv is None and not isinstance(sys.stdout, _PipeClosedSink):  # the console command itself
         sys.stdout = _PipeClosedSink(sys.stdout)

@@ -41,7 +41,9 @@ def impact_summary(law: str = "hmd", angle_deg: float = 30.0, scenario: Path = O
 
     ``settings`` are dotted scenario keys with '.' written as '__', e.g. contact__friction=0.
     """
-    from minidem import analysis, scenario as scenario_module, simulation
+    from minidem.results import analysis
+    from minidem.scene import scenario as scenario_module
+    from minidem.engine import simulation
 
     overrides = [f'contact.law="{law}"', f"impact.angle_deg={angle_deg!r}"]
     overrides += [f"{key.replace('__', '.')}={_toml(value)}" for key, value in settings.items()]
@@ -68,7 +70,7 @@ def cli():
 
 
 def contact_count(state):
-    """Contacts per particle (pairs and plane walls) in a :class:`minidem.simulation.State`."""
+    """Contacts per particle (pairs and plane walls) in a :class:`minidem.engine.simulation.State`."""
     offsets, partners, _, overlap = state.pairs[:4]
     first = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
     touching = overlap > 0

@@ -23,8 +23,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from minidem import analysis, executors, scenario, simulation, sweep
-from minidem.scenario import ScenarioError
+from minidem.engine import simulation
+from minidem.results import analysis
+from minidem.scene import scenario
+from minidem.scene.scenario import ScenarioError
+from minidem.studies import executors, sweep
 
 FILES = Path(__file__).resolve().parent.parent / "scenarios" / "chung-ooi"
 
@@ -272,7 +275,7 @@ def test_a_sweep_writes_its_chung_ooi_figure(tmp_path):
     data["sweep"]["series_labels"] = ["HMD"]
     plan = sweep.plan(data, str(path))
     rows = sweep.run(plan, tmp_path, progress=False, executor=executors.LocalProcesses(1))
-    from minidem import figures
+    from minidem.studies import figures
 
     written = figures.draw(plan, rows, tmp_path)
     assert [p.name for p in written] == ["hertz.png"] and written[0].stat().st_size > 10_000

@@ -25,8 +25,11 @@ import numpy as np
 import pytest
 
 from conftest import OBLIQUE, REPO, minidem_command, run_cli
-from minidem import blowup, cli, scenario, simulation
-from minidem.output import checkpoint
+from minidem import cli
+from minidem.engine import blowup
+from minidem.scene import scenario
+from minidem.engine import simulation
+from minidem.engine import checkpoint
 
 SETTLE = REPO / "scenarios" / "settle.toml"
 # 300 spheres in 4 layers falling into a 20 mm box (the scene of test_multiparticle.py)
@@ -106,7 +109,7 @@ def test_killed_run_resumes_bit_for_bit(tmp_path):
     reference = tmp_path / "uninterrupted"
     scene = scenario.load_scene(SETTLE, [o for o in overrides if "checkpoint" not in o], reference)
     sim = simulation.Simulation(scene)
-    from minidem.output.vtk import SimulationFrames
+    from minidem.results.vtk import SimulationFrames
 
     frames = SimulationFrames(sim, reference)
     sim.run(on_frame=frames, checkpoints=checkpoint.Policy(reference))

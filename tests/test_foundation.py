@@ -18,7 +18,9 @@ import pytest
 
 from conftest import (OBLIQUE, PAPER, impact_summary, minidem_command, paper_effective_modulus, paper_mass,
                       run_cli)
-from minidem import analysis, scenario, simulation
+from minidem.results import analysis
+from minidem.scene import scenario
+from minidem.engine import simulation
 
 MU = PAPER["friction"]
 

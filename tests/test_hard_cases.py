@@ -24,8 +24,11 @@ import numpy as np
 import pytest
 
 from conftest import OBLIQUE, PAPER, impact_summary, paper_effective_modulus, paper_mass, run_cli
-from minidem import analysis, reference, scenario, simulation
-from minidem.scenario import ScenarioError
+from minidem.results import analysis
+from minidem.studies import reference
+from minidem.scene import scenario
+from minidem.engine import simulation
+from minidem.scene.scenario import ScenarioError
 
 MU = PAPER["friction"]
 GLASS = {"youngs_modulus": PAPER["youngs_modulus"], "poisson_ratio": PAPER["poisson_ratio"],

@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 from conftest import contact_count
-from minidem import analysis, scenario, simulation
+from minidem.results import analysis
+from minidem.scene import scenario
+from minidem.engine import simulation
 
 GLASS = {"youngs_modulus": 70e9, "poisson_ratio": 0.3, "density": 2650.0}
 RADIUS, SPEED = 0.025, 5.0
@@ -170,7 +172,7 @@ def test_rigidly_rotating_contact_keeps_its_tangential_force(law_name):
     # tangential velocity is zero, and an objective law must return the same tangential
     # force magnitude, turned with the pair. The normal (line of centres) turns, so a
     # history left in the old tangent plane would tilt out of the new one.
-    from minidem import contact
+    from minidem.geometry import primitives as contact
 
     extra = {"friction": 1.0, **({"calibration_speed": SPEED} if law_name == "ls" else {})}
     sim = simulation.Simulation(scenario.build_scene(two_spheres(law_name, extra=extra)))
@@ -371,7 +373,7 @@ def test_vtk_series_reads_back_with_meshio_and_vtk(tmp_path):
     import vtk
     from vtk.util.numpy_support import vtk_to_numpy
 
-    from minidem.output.vtk import SimulationFrames
+    from minidem.results.vtk import SimulationFrames
 
     scene = scenario.load_scene("scenarios/settle.toml", DEEP_PILE[1:] + [
         "fill.0.count=100", "run.end_time=0.03", "output.interval=0.006", "output.contacts=true", "run.threads=1"])
@@ -413,7 +415,7 @@ def test_vtk_series_reads_back_with_meshio_and_vtk(tmp_path):
 def test_the_state_a_run_ends_in_is_always_a_frame(tmp_path):
     # review: with output.interval > run.end_time only t = 0 was written; and an interval
     # that does not divide the run lost its end. Frames: every interval, then the end.
-    from minidem.output.vtk import SimulationFrames
+    from minidem.results.vtk import SimulationFrames
 
     scene = scenario.load_scene("scenarios/settle.toml", DEEP_PILE[1:] + [
         "fill.0.count=100", "run.end_time=0.01", "output.interval=0.006", "run.threads=1"])
@@ -435,7 +437,7 @@ def test_a_parallel_run_reports_unrecorded_contact_peaks_as_null():
     # review: summary.json said max_overlap_m = 0 and peak_normal_force_n = 0 for a
     # 200-particle settle whose final state had overlaps; the parallel loop does not
     # record peaks (a race between threads), so they are unknown, not zero
-    from minidem import analysis
+    from minidem.results import analysis
 
     scene = scenario.load_scene("scenarios/settle.toml", DEEP_PILE[1:] + ["fill.0.count=100", "run.end_time=0.02"])
     result = simulation.Simulation(scene, kernel_flags={"PARALLEL": True}).run()  # whatever the size threshold

@@ -4,7 +4,7 @@ import numba
 import numpy as np
 import pytest
 
-from minidem.neighbours import (
+from minidem.geometry.neighbours import (
     MAX_CELLS_PER_PARTICLE,
     NeighbourList,
     _cell_grid,

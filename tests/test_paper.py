@@ -15,8 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from minidem import analysis, scenario, simulation, sweep
-from minidem.kernel import TRACE_COLUMNS
+from minidem.results import analysis
+from minidem.scene import scenario
+from minidem.engine import simulation
+from minidem.studies import sweep
+from minidem.engine.kernel import TRACE_COLUMNS
 
 ROOT = Path(__file__).resolve().parents[1]
 BASE = ROOT / "scenarios" / "oblique.toml"

@@ -1,4 +1,4 @@
-"""The independent reference solution (minidem.reference) and the engine against it.
+"""The independent reference solution (minidem.studies.reference) and the engine against it.
 
 Expected values come from closed forms: Hertz's normal impact (paper eqs 12-13, with the
 exact duration coefficient), the linear spring's half period (eq 27), the constant force
@@ -10,8 +10,8 @@ import math
 
 import pytest
 
-from minidem import reference
-from minidem.reference import Impact, solve
+from minidem.studies import reference
+from minidem.studies.reference import Impact, solve
 
 PAPER = Impact()  # R = 25 mm, 2650 kg/m3, E = 70 GPa, nu = 0.3, mu = 0.1, V = 5 m/s
 
@@ -83,7 +83,7 @@ def test_hmd_switches_are_events():
 # 2.5e-3 off in et at 1 deg and HM 3.8e-4 at 5 deg. They need a midpoint stiffness (engine).
 @pytest.mark.parametrize("law", reference.LAWS)
 def test_engine_within_1e_4_of_reference_at_default_settings(law):
-    from minidem import bench
+    from minidem.studies import bench
 
     for angle in (1.0, 5.0, 20.0, 45.0):
         summary, _ = bench.engine_case(law, angle)
@@ -98,7 +98,10 @@ def test_engine_within_1e_4_of_reference_for_every_reading_of_eq_24(reading):
     # tests it per step. Same 1e-4 target as the default law (issue 5).
     import warnings
 
-    from minidem import analysis, bench, scenario, simulation
+    from minidem.results import analysis
+    from minidem.studies import bench
+    from minidem.scene import scenario
+    from minidem.engine import simulation
 
     for angle in (1.0, 5.0, 8.0, 20.0):
         with warnings.catch_warnings():
@@ -118,7 +121,10 @@ def test_hmd_full_reversal_needs_a_positive_reversal_point():
     # 0.629 at 5 deg against the engine's 0.734). Now no reversal happens at all in this
     # impact, and the engine agrees within its own step-to-step spread at mu = 10
     # (4e-4 between 2000 and 32000 steps per contact, docs/laws.md), taken as 1e-3.
-    from minidem import analysis, bench, scenario, simulation
+    from minidem.results import analysis
+    from minidem.studies import bench
+    from minidem.scene import scenario
+    from minidem.engine import simulation
 
     expected = solve(Impact(law="hmd", angle_deg=5.0, friction=10.0), 1e-10)
     assert "reverse" not in [e for _, e in expected.events]

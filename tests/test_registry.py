@@ -23,7 +23,10 @@ import pytest
 
 import minidem
 from conftest import OBLIQUE, run_cli
-from minidem import analysis, laws, scenario, simulation
+from minidem import laws
+from minidem.results import analysis
+from minidem.scene import scenario
+from minidem.engine import simulation
 
 FAKE_COMMON = '''
 import math
@@ -460,7 +463,7 @@ def test_verify_catches_a_law_that_depends_on_the_frame(fake_site, monkeypatch):
     the check must fail it (its positive case: every built-in law and the plugin of
     tests/test_faults.py pass). Momentum is still conserved: the law is equal and
     opposite on the two spheres, so only the rotation shows the defect."""
-    from minidem import verify
+    from minidem.studies import verify
 
     monkeypatch.setattr(laws, "_REGISTRY", load("fake_frame"))
     checks = {c.name: c for c in verify.Battery("fake_global_x_drag").pair_collision()}

@@ -14,7 +14,8 @@ import textwrap
 import pytest
 
 from conftest import OBLIQUE, run_cli
-from minidem import cli, scenario
+from minidem import cli
+from minidem.scene import scenario
 
 BASE = OBLIQUE.read_text()
 
@@ -331,7 +332,7 @@ def test_scenario_that_is_not_utf8_is_bad_input(tmp_path, capsys):
 @pytest.fixture
 def no_compile(monkeypatch):
     """A bad output directory must be refused before anything is compiled or run."""
-    from minidem import simulation
+    from minidem.engine import simulation
 
     def refuse(*args, **kwargs):
         raise AssertionError("the simulation was built before the output directory was checked")

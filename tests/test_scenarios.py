@@ -14,7 +14,10 @@ import numpy as np
 import pytest
 
 from conftest import REPO
-from minidem import analysis, scenario, simulation, sweep
+from minidem.results import analysis
+from minidem.scene import scenario
+from minidem.engine import simulation
+from minidem.studies import sweep
 
 SCENARIOS = sorted((REPO / "scenarios").rglob("*.toml"))
 

@@ -22,7 +22,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from minidem import cli, executors, scenario, sweep
+from minidem import cli
+from minidem.studies import executors
+from minidem.scene import scenario
+from minidem.studies import sweep
 
 from conftest import OBLIQUE, impact_summary, minidem_command
 
@@ -150,7 +153,7 @@ def test_a_second_sweep_in_the_same_directory_is_refused(tmp_path):
     """Two runs appending to one journal would run cases twice and interleave rows."""
     import sys
 
-    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from minidem import sweep; "
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from minidem.studies import sweep; "
                                f"lock = sweep._directory_lock(__import__('pathlib').Path({str(tmp_path)!r})); "
                                "lock.__enter__(); print('locked', flush=True); time.sleep(60)"],
                               stdout=subprocess.PIPE, text=True)

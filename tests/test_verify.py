@@ -9,7 +9,7 @@ import json
 import subprocess
 import sys
 
-from minidem import verify
+from minidem.studies import verify
 
 
 def by_name(checks):

@@ -1,4 +1,4 @@
-"""Tests for minidem.output.vtk: files are checked with two independent readers (meshio's
+"""Tests for minidem.results.vtk: files are checked with two independent readers (meshio's
 pure-Python parser and VTK's own XML readers, which is what ParaView uses)."""
 
 import os
@@ -17,8 +17,8 @@ import pyvista as pv
 import vtk
 from vtk.util.numpy_support import vtk_to_numpy
 
-import minidem.output.vtk as vtkmod
-from minidem.output.vtk import VTKSeriesWriter, plane_to_quad, write_surface_vtu
+import minidem.results.vtk as vtkmod
+from minidem.results.vtk import VTKSeriesWriter, plane_to_quad, write_surface_vtu
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -503,7 +503,7 @@ def test_files_honour_umask(tmp_path):
 
 CHILD = textwrap.dedent("""
     import sys, numpy as np
-    from minidem.output.vtk import VTKSeriesWriter
+    from minidem.results.vtk import VTKSeriesWriter
     n = 3000
     w = VTKSeriesWriter(sys.argv[1], background_sync=sys.argv[2] == "1")
     k = 0
@@ -587,8 +587,9 @@ def test_an_analytic_flight_run_has_the_flight_frames(tmp_path):
     steps start at first touch), but ParaView must still see it fall: frames at t = 0 and
     every output.interval before the touch, placed by the ballistic closed form, then the
     touch and the stepped frames every interval from it (independent review finding)."""
-    from minidem import scenario, simulation
-    from minidem.output.vtk import SimulationFrames
+    from minidem.scene import scenario
+    from minidem.engine import simulation
+    from minidem.results.vtk import SimulationFrames
 
     scene = scenario.build_scene({
         "materials": {"glass": {"youngs_modulus": 70e9, "poisson_ratio": 0.3, "density": 2650.0}},

@@ -14,7 +14,11 @@ import meshio
 import numpy as np
 import pytest
 
-from minidem import analysis, particles, scenario, simulation, walls
+from minidem.results import analysis
+from minidem.scene import fills as particles
+from minidem.scene import scenario
+from minidem.engine import simulation
+from minidem.geometry import walls
 
 GLASS = {"youngs_modulus": 70e9, "poisson_ratio": 0.3, "density": 2650.0}
 SPEED = 5.0
@@ -427,7 +431,7 @@ def test_vtk_frame_read_back_as_the_initial_state_continues_the_run(tmp_path):
     # positions, velocities and spins, and no contact history is lost). Run to the same
     # end, it must reproduce the uninterrupted run bit for bit: the frame is stored as
     # float64 and forces are summed in the same order whatever the neighbour list.
-    from minidem.output.vtk import SimulationFrames
+    from minidem.results.vtk import SimulationFrames
 
     settle = ["walls.0.upper=[0.02, 0.02, 1.0]", "fill.0.upper=[0.02, 0.02, 1.0]", "fill.0.count=100",
               "run.threads=1", "output.interval=0.003"]
@@ -543,7 +547,7 @@ def test_walls_vtu_names_each_surfaces_walls_table(tmp_path):
     the [[walls]] table each came from, so a threshold on it selects the silo (review)."""
     import meshio
 
-    from minidem.output.vtk import SimulationFrames
+    from minidem.results.vtk import SimulationFrames
 
     scene = scenario.load_scene(SETTLE.parent / "hopper.toml", ["run.end_time=0.001"], tmp_path)
     frames = SimulationFrames(simulation.Simulation(scene), tmp_path)

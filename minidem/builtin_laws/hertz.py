@@ -172,7 +172,7 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
     fn_old = stiffness * max(normal_overlap - normal_overlap_increment, 0.0) ** 1.5
     dfn = fn - fn_old
     # 8 G* a at the middle of the step: with the end-of-step radius the update is only
-    # first order in dt (measured against minidem.reference); see also _hmd_theta
+    # first order in dt (measured against minidem.studies.reference); see also _hmd_theta
     mid_overlap = max(normal_overlap - 0.5 * normal_overlap_increment, 0.0)
     stick_stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius * mid_overlap)
     limit = mu * max(normal_force, 0.0)

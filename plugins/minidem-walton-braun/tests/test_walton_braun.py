@@ -18,7 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from minidem import analysis, laws, scenario, simulation
+from minidem import laws
+from minidem.results import analysis
+from minidem.scene import scenario
+from minidem.engine import simulation
 from minidem_walton_braun.law import MAX_OVERLAP, WALTON_BRAUN, walton_braun_force
 
 RADIUS, DENSITY, SPEED, MU = 0.025, 2650.0, 5.0, 0.1

@@ -68,7 +68,7 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
     ), "The contact law and its parameters (friction included); every other key is a parameter "
        "of the chosen law, checked against its declaration (see docs/laws.md)."),
     "walls": ("array", (
-        Key("type", "choice", "plane", "", "wall shape (see minidem/walls.py)",
+        Key("type", "choice", "plane", "", "wall shape (see minidem/geometry/walls.py)",
             choices=("plane", "box", "cylinder", "mesh")),
         Key("material", "str", REQUIRED, "", "material name"),
         Key("point", "vec3", (0.0, 0.0, 0.0), "m", "plane: a point of the plane; cylinder: centre of its base"),
@@ -97,7 +97,7 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
         Key("material", "str", REQUIRED, "", "material name"),
     ), "Individual spheres, one `[[particles]]` table each."),
     "fill": ("array", (
-        Key("kind", "choice", REQUIRED, "", "generator (see minidem/particles.py)",
+        Key("kind", "choice", REQUIRED, "", "generator (see minidem/scene/fills.py)",
             choices=("lattice", "random", "file")),
         Key("material", "str", REQUIRED, "", "material name"),
         Key("radius", "float", None, "m", "lattice, random (required): sphere radius (random: the smallest)",
@@ -276,7 +276,7 @@ class Scene:
     trace: bool
     impact: Impact | None = None
     raw: dict = dataclasses.field(default_factory=dict)
-    walls: Any = None  # minidem.walls.WallSet: every wall kind (planes also in wall_point...)
+    walls: Any = None  # minidem.geometry.walls.WallSet: every wall kind (planes also in wall_point...)
     skin: float | None = None
     threads: int = 0
     vtk: bool = False
@@ -600,7 +600,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         walls = []
     wall_point, wall_normal, wall_material = [], [], []
     plane_origin = []  # per plane: ([[walls]] index, what it is, display bounds)
-    from minidem import walls as wall_shapes
+    from minidem.geometry import walls as wall_shapes
 
     wall_set = wall_shapes.WallSet.empty()
     cylinders, meshes = [], []
@@ -755,8 +755,8 @@ def _required(values, keys, kind, where, errors) -> bool:
 
 def _shaped_wall(kind, values, where, source, errors, material_of, wall_point, wall_normal, wall_material,
                  cylinders, meshes, index, plane_origin) -> None:
-    """Box, cylinder and mesh walls (see minidem/walls.py); planes are handled inline."""
-    from minidem import walls as wall_shapes
+    """Box, cylinder and mesh walls (see minidem/geometry/walls.py); planes are handled inline."""
+    from minidem.geometry import walls as wall_shapes
 
     material = material_of(values.get("material"), f"{where}.material")
     if kind == "box":
@@ -799,8 +799,8 @@ def _shaped_wall(kind, values, where, source, errors, material_of, wall_point, w
 
 
 def _fill(table, where, source, errors, material_of, position, velocity, spin, radius, particle_material) -> None:
-    """Particles from a [[fill]] generator (see minidem/particles.py), appended to the lists."""
-    from minidem import particles as generators
+    """Particles from a [[fill]] generator (see minidem/scene/fills.py), appended to the lists."""
+    from minidem.scene import fills as generators
 
     values = _check_table(table, SCHEMA["fill"][1], where, errors)
     kind = values.get("kind")
@@ -918,7 +918,7 @@ def _check_geometry(scene: Scene, max_reported: int = 5) -> None:
     if scene.walls is not None:
         # cylinders and meshes as planes: every contact, whatever the wall, starts at first
         # touch during the run, with zero history (docs/multi-particle.md)
-        from minidem.walls import initial_wall_overlaps
+        from minidem.geometry.walls import initial_wall_overlaps
 
         for i, wall, overlap, behind in initial_wall_overlaps(scene.walls, scene.position, scene.radius,
                                                                _TOUCH_TOLERANCE):
@@ -930,7 +930,7 @@ def _check_geometry(scene: Scene, max_reported: int = 5) -> None:
     if len(wall_findings) > max_reported:
         errors.add("", f"... and {len(wall_findings) - max_reported} more particle-wall overlaps")
     if scene.n_particles > 1:
-        from minidem.neighbours import build_pairs
+        from minidem.geometry.neighbours import build_pairs
 
         offsets, neighbours = build_pairs(scene.position, scene.radius, 0.0)
         first = np.repeat(np.arange(scene.n_particles), np.diff(offsets))
@@ -963,7 +963,7 @@ def _toml(value) -> str:
 
 def reference_markdown() -> str:
     lines = ["# Scenario file reference", "",
-             "Generated from `minidem/scenario.py` (`minidem docs --write docs/scenario-reference.md`); every key, unit, default "
+             "Generated from `minidem/scene/scenario.py` (`minidem docs --write docs/scenario-reference.md`); every key, unit, default "
              "and bound below is the one the validator applies. Units are SI throughout.", ""]
     for section, (shape, keys, description) in SCHEMA.items():
         header = {"tables": f"[{section}.NAME]", "array": f"[[{section}]]"}.get(shape, f"[{section}]")

@@ -1,6 +1,6 @@
 """Validated scene -> compiled simulation -> run result.
 
-``compile_kernel`` specialises the kernel template (``minidem/kernel.py``) for one law
+``compile_kernel`` specialises the kernel template (``minidem/engine/kernel.py``) for one law
 and one scene shape; ``Simulation`` prepares the per-material-pair constants, chooses
 the time step and advances the compiled kernel in chunks (no Python call per step or
 per contact). Between chunks it rebuilds the Verlet lists when the kernel asks
@@ -27,8 +27,10 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from minidem import __version__, integrate, kernel, laws, neighbours
-from minidem.scenario import Scene, ScenarioError
+from minidem import __version__, laws
+from minidem.engine import integrate, kernel
+from minidem.geometry import neighbours, primitives
+from minidem.scene.scenario import Scene, ScenarioError
 
 # OpenMP first: its threads wait briefly at the end of a parallel region instead of
 # sleeping, so the two fork-joins of every step cost less than with TBB (20,000 jitter,
@@ -42,7 +44,8 @@ if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY
 _TEMPLATE = Path(kernel.__file__)
 _BLOCK_START = "# >>> specialisation block"
 _BLOCK_END = "# <<< specialisation block"
-_ENGINE_SOURCES = ("kernel.py", "contact.py", "integrate.py")
+# the files a kernel is built from: the template and the modules it imports
+_ENGINE_SOURCES = (Path(kernel.__file__), Path(primitives.__file__), Path(integrate.__file__))
 # Scenes with more particles than this run their particle loops in parallel; smaller
 # ones run serial and record contact statistics (first touch, separation, peaks).
 # A scene with run.stop = "separation" always runs serial: its stop and its contact
@@ -53,7 +56,7 @@ PARALLEL_ABOVE = 16
 # scenes with fewer particles than this: each step forks and joins the threads twice,
 # which costs more than the second thread saves below this size (measured on the settle
 # scene: docs/multi-particle.md, "Threads"). The results are the same bits either way.
-# (The run.threads text in minidem/scenario.py names this number.)
+# (The run.threads text in minidem/scene/scenario.py names this number.)
 PARALLEL_MIN_PARTICLES = 5000
 # scene-shape flags of the kernel specialisation block, in order
 KERNEL_FLAGS = ("SPIN", "PAIRS", "CYLINDERS", "MESHES", "PARALLEL")
@@ -224,8 +227,8 @@ def _engine_hash() -> str:
     """Hash of the engine sources a kernel is built from: read once per process (a sweep
     builds one Simulation per case, and these files do not change under a running one)."""
     engine = hashlib.sha256()
-    for name in _ENGINE_SOURCES:
-        engine.update((_TEMPLATE.parent / name).read_bytes())
+    for path in _ENGINE_SOURCES:
+        engine.update(path.read_bytes())
     return engine.hexdigest()
 
 
@@ -437,7 +440,7 @@ class Simulation:
         the same, only the cost differs."""
         self.scene = scene
         if scene.walls is None:  # a Scene built by hand: planes only
-            from minidem.walls import WallSet
+            from minidem.geometry.walls import WallSet
 
             scene.walls = WallSet.empty()
             scene.walls.set_planes(scene.wall_point, scene.wall_normal, scene.wall_material)
@@ -644,7 +647,7 @@ class Simulation:
 
     def _plan_flight(self) -> None:
         """run.integrator = "analytic_flight": the free flight before the first contact in
-        closed form (minidem.integrate.flight_to_first_touch); the run starts at touch."""
+        closed form (minidem.engine.integrate.flight_to_first_touch); the run starts at touch."""
         scene = self.scene
         self.start_time = 0.0
         self.start_position, self.start_velocity = scene.position, scene.velocity
@@ -710,14 +713,14 @@ class Simulation:
         0.2 s of wall time). on_frame(time, state): called at t = 0 and every
         ``output_interval`` of simulated time (state: :class:`State`); an on_frame that
         also has ``checkpoint_state()`` and ``restore(saved, frames)`` (as
-        :class:`minidem.output.vtk.SimulationFrames`) has its series saved in checkpoints.
+        :class:`minidem.results.vtk.SimulationFrames`) has its series saved in checkpoints.
 
-        checkpoints: a :class:`minidem.output.checkpoint.Policy` (where and how often to
+        checkpoints: a :class:`minidem.engine.checkpoint.Policy` (where and how often to
         write checkpoints; the final state, the last good state of a failed run), or None
         to write no file. resume_from: (arrays, meta) of a checkpoint
-        (:func:`minidem.output.checkpoint.load_for_resume`): continue from it, bit for bit.
+        (:func:`minidem.engine.checkpoint.load_for_resume`): continue from it, bit for bit.
 
-        Raises :class:`RunFailure` on a blow-up (see :mod:`minidem.blowup`), after
+        Raises :class:`RunFailure` on a blow-up (see :mod:`minidem.engine.blowup`), after
         restoring ``self.state`` to the last good state (and writing it, with checkpoints).
         """
         scene, k = self.scene, self.kernel
@@ -766,8 +769,8 @@ class Simulation:
         return f"try run.dt = {suggestion:.3g} s ({why}; now {self.dt:.3g} s, {self.dt_reason})"
 
     def _run(self, scene, k, chunk_steps, progress, on_frame, threads, policy, resume_from) -> RunResult:
-        from minidem import blowup
-        from minidem.output import checkpoint
+        from minidem.engine import blowup
+        from minidem.engine import checkpoint
 
         state = self.state = State(self)
         probe_wall = scene.impact.wall if scene.impact is not None else (0 if scene.wall_point.shape[0] else -1)
@@ -1035,7 +1038,7 @@ class Simulation:
         )
 
     def _fault_message(self, status, steps) -> str:
-        """What the kernel stopped for (status codes of minidem.kernel)."""
+        """What the kernel stopped for (status codes of minidem.engine.kernel)."""
         code, particle, partner, kind = (int(x) for x in status)
         when = f"at step {steps} (t = {self.start_time + steps * self.dt:.6g} s)"
         walls = self.scene.walls

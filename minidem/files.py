@@ -1,4 +1,4 @@
-"""Result writers. Every file is written atomically (temporary file in the same
+"""Atomic file writing for every result writer. Every file is written atomically (temporary file in the same
 directory, flushed to disk, then renamed over the target), so an interrupted run never
 leaves a half-written result."""
 

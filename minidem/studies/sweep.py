@@ -10,7 +10,7 @@ A scenario with a ``[sweep]`` section is run once per case by ``minidem run``::
 cases are their cartesian product, the first key varying slowest, and every case is the
 base scenario with those values set.
 
-Cases run through an executor (``minidem.executors``): local processes by default, or
+Cases run through an executor (``minidem.studies.executors``): local processes by default, or
 the workers of a Dask scheduler (``--scheduler``). The worker function
 :func:`run_case` is pure and deterministic: it compiles or loads the law's kernel from
 the worker's own cache, runs one case and returns its row (and trace); only this process
@@ -39,8 +39,9 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from minidem import executors, scenario
-from minidem.scenario import ScenarioError
+from minidem.studies import executors
+from minidem.scene import scenario
+from minidem.scene.scenario import ScenarioError
 
 # Every column is a function of the case alone (no wall time: that goes to the journal
 # and sweep.json), so that sweep.csv is the same file wherever the cases ran.
@@ -87,6 +88,20 @@ class SweepPlan:
     @property
     def collision_columns(self) -> bool:
         return any(f in COLLISION_FIGURES for f in self.figures)
+
+    def series(self) -> list[tuple]:
+        """Distinct values of the series keys, in first-seen order."""
+        positions = [self.keys.index(k) for k in self.series_keys]
+        seen: dict[tuple, None] = {}
+        for case in self.cases:
+            seen.setdefault(series_of_case(case, positions), None)
+        return list(seen)
+
+    @property
+    def friction(self) -> float:
+        """The friction coefficient of the base scenario (for the rigid-body lines)."""
+        value = self.base.get("contact", {}).get("friction")
+        return float(value) if isinstance(value, (int, float)) else math.nan
 
 
 def _toml_value(value) -> str:
@@ -139,8 +154,8 @@ def plan(data: dict, source: str) -> SweepPlan:
     sweep = SweepPlan(source, base, keys, cases, values["workers"], values["keep_traces"],
                       list(values["figures"]), values.get("series_labels"), values.get("title"),
                       values["abscissa"] or ANGLE_KEY, grouped)
-    if sweep.series_labels is not None and len(sweep.series_labels) != len(_series(sweep)):
-        errors.add("sweep.series_labels", f"expected {len(_series(sweep))} labels (one per combination of "
+    if sweep.series_labels is not None and len(sweep.series_labels) != len(sweep.series()):
+        errors.add("sweep.series_labels", f"expected {len(sweep.series())} labels (one per combination of "
                    f"{', '.join(sweep.series_keys) or 'nothing'}), got {len(sweep.series_labels)}")
     # every case must be a valid scenario before anything runs: bad input is exit 2
     with warnings.catch_warnings(record=True) as caught:
@@ -193,15 +208,6 @@ def _axes(keys, columns, together, abscissa, errors) -> tuple[list, tuple]:
     return axes, tuple(grouped)
 
 
-def _series(sweep: SweepPlan) -> list[tuple]:
-    """Distinct values of the series keys, in first-seen order."""
-    positions = [sweep.keys.index(k) for k in sweep.series_keys]
-    seen: dict[tuple, None] = {}
-    for case in sweep.cases:
-        seen.setdefault(series_of_case(case, positions), None)
-    return list(seen)
-
-
 def series_of_case(case: tuple, positions: list[int]) -> tuple:
     """The series a case belongs to: its values of the series keys (a swept table, which
     is not hashable, as its TOML text)."""
@@ -220,7 +226,8 @@ def code_fingerprint(law_names: tuple[str, ...]) -> str:
     import numpy
 
     import minidem
-    from minidem import laws, simulation
+    from minidem import laws
+    from minidem.engine import simulation
 
     digest = hashlib.sha256()
     package = Path(minidem.__file__).parent
@@ -248,7 +255,7 @@ def plan_hash(sweep: SweepPlan) -> str:
 
 
 # ---------------------------------------------------------------------------------
-# one case: the worker function (pure, deterministic, importable as minidem.sweep.run_case)
+# one case: the worker function (pure, deterministic, importable as minidem.studies.sweep.run_case)
 # ---------------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
 class Case:
@@ -275,7 +282,8 @@ def run_case(case: Case) -> dict:
         # an infrastructure fault, not a result: raised, so the case is not journalled
         raise CodeMismatch(f"worker pid {os.getpid()} runs other minidem/law/numba/numpy code than the client "
                            "(install the same versions on every worker)")
-    from minidem import analysis, simulation
+    from minidem.results import analysis
+    from minidem.engine import simulation
 
     row: dict[str, Any] = {"case": case.index, "status": "ok", "error": ""}
     started = wallclock.perf_counter()
@@ -345,7 +353,7 @@ class Journal:
         return header, rows
 
     def start(self, header: dict) -> None:
-        from minidem.output import atomic_write
+        from minidem.files import atomic_write
 
         atomic_write(self.path, json.dumps(header) + "\n")
         self._open()
@@ -433,7 +441,7 @@ class _directory_lock:
 
 
 def _run_locked(sweep, directory, progress, workers, executor, restart, echo) -> list[dict]:
-    from minidem import output
+    from minidem import files
 
     n = len(sweep.cases)
     digest = plan_hash(sweep)
@@ -485,9 +493,9 @@ def _run_locked(sweep, directory, progress, workers, executor, restart, echo) ->
             trace = row.pop("trace", None)
             if trace is not None:
                 relative = f"traces/case_{index:03d}.csv"
-                from minidem.kernel import TRACE_COLUMNS
+                from minidem.engine.kernel import TRACE_COLUMNS
 
-                output.write_csv(directory / relative, TRACE_COLUMNS, trace.tolist())
+                files.write_csv(directory / relative, TRACE_COLUMNS, trace.tolist())
                 row["trace_file"] = relative  # relative to the sweep directory: the same file anywhere
             journal.append(row)  # after its trace: a journalled case is complete on disk
             done[index] = row
@@ -519,8 +527,8 @@ def _run_locked(sweep, directory, progress, workers, executor, restart, echo) ->
             row["angle_deg"] = (case[sweep.keys.index(ANGLE_KEY)] if ANGLE_KEY in sweep.keys
                                 else sweep.base.get("impact", {}).get("angle_deg"))
         table.append(["" if row.get(c) is None else row.get(c) for c in columns])
-    output.write_csv(directory / "sweep.csv", columns, table)
-    output.write_json(directory / "sweep.json", {
+    files.write_csv(directory / "sweep.csv", columns, table)
+    files.write_json(directory / "sweep.json", {
         "scenario": sweep.source, "cases": n, "failed": sum(1 for r in rows if r["status"] != "ok"),
         "ran_now": len(pending), "resumed_from": n - len(pending), "backend": executor.description,
         "wall_time_s": elapsed, "cases_wall_time_s": sum(r.get("wall_time_s") or 0.0 for r in rows),
@@ -572,16 +580,10 @@ def load_rows(path: str | Path) -> list[dict]:
     return rows
 
 
-def friction_of(sweep: SweepPlan) -> float:
-    """The friction coefficient of the base scenario (for the rigid-body lines)."""
-    value = sweep.base.get("contact", {}).get("friction")
-    return float(value) if isinstance(value, (int, float)) else math.nan
-
-
 def _energy_gain_notes(rows: list[dict]) -> list[str]:
     """One line per law whose impacts gained kinetic energy beyond integration error
     (analysis.energy_creation_warning), with the swept cases where it happened."""
-    from minidem import analysis
+    from minidem.results import analysis
 
     gained: dict[str, list[dict]] = {}
     for r in rows:
@@ -598,7 +600,7 @@ def command(args, data: dict) -> int:
     """``minidem run`` of a scenario with a [sweep] section."""
     import sys
 
-    from minidem import figures
+    from minidem.studies import figures
 
     data = scenario.apply_overrides(data, args.set)
     sweep = plan(data, str(args.file))

@@ -1,6 +1,6 @@
 """The compiled simulation: contact loops and the time-step loop.
 
-This file is a template. ``minidem.simulation.compile_kernel`` copies it into the
+This file is a template. ``minidem.engine.simulation.compile_kernel`` copies it into the
 kernel cache with the specialisation block below rewritten for one contact law and
 one scene shape, so numba compiles one kernel per (law, scene shape) with the law's
 force function inlined, and caches it across processes. Nothing here names a law.
@@ -14,7 +14,7 @@ removed by the compiler, so a single impact pays nothing for pairs or meshes):
     MESHES     triangle-mesh walls
     PARALLEL   particle loops run with prange; small scenes run serial and TRACK
                contact statistics (first touch, separation, peaks) and the probe
-    OPENING_KICK  the integrator (minidem.integrate): the fraction of the velocity
+    OPENING_KICK  the integrator (minidem.engine.integrate): the fraction of the velocity
                update made before the drift, 0.5 velocity Verlet, 1 symplectic Euler
 
 One step is two parallel particle passes (velocity Verlet shown; symplectic Euler
@@ -45,7 +45,7 @@ Every sum is taken in an order fixed by the neighbour list, never by the thread
 schedule, so a run is bit-for-bit the same on any number of threads, and no two
 threads write the same memory.
 
-Contact conventions are those of ``minidem.contact``: n points from j (or the wall)
+Contact conventions are those of ``minidem.geometry.primitives``: n points from j (or the wall)
 to i, the normal force acts on i along +n, the law's tangential force acts on i as -ft.
 """
 
@@ -54,7 +54,7 @@ import math
 import numba
 import numpy as np
 
-from minidem.contact import (
+from minidem.geometry.primitives import (
     FACE,
     cross,
     cylinder_overlap,
@@ -63,9 +63,9 @@ from minidem.contact import (
     rotate_slot_into_plane,
     triangle_closest_point,
 )
-from minidem.integrate import drift, kick
+from minidem.engine.integrate import drift, kick
 
-# >>> specialisation block (rewritten by minidem.simulation.compile_kernel)
+# >>> specialisation block (rewritten by minidem.engine.simulation.compile_kernel)
 from minidem.builtin_laws.linear import linear_force as law_force  # noqa: E402
 
 SPIN = True

@@ -4,21 +4,21 @@ Writes three sections of ``docs/benchmarks.md`` (between ``<!-- bench:NAME -->``
 leaving the rest of the file alone) and PNG figures in ``docs/figures/``:
 
 - ``single-impact``: the engine's error in y1, y2, et against the independent reference
-  solution (``minidem.reference``) at the default time step, for every paper law and angle,
+  solution (``minidem.studies.reference``) at the default time step, for every paper law and angle,
   and the reference's own convergence (two tolerances);
 - ``work-precision``: error against run time per impact over a range of time steps, for
-  every integrator (``minidem.integrate``), on the paper's impact (touching at t = 0) and
+  every integrator (``minidem.engine.integrate``), on the paper's impact (touching at t = 0) and
   on the same impact released 1 mm from the wall; the observed order of convergence per
   law and integrator; the cheapest integrator and step reaching 1e-3, 1e-4, 1e-6;
 - ``model-only``: what modelling only what a scene needs saves: the single impact with
   the kernel specialised for it against kernels with spin, pairs, cylinders and meshes
   forced on (same results, more work);
-- ``sweep-timing``: the whole paper sweep (6 laws x 30 angles) through ``minidem.sweep``
+- ``sweep-timing``: the whole paper sweep (6 laws x 30 angles) through ``minidem.studies.sweep``
   in a fresh process, cold (empty MINIDEM_CACHE_DIR and NUMBA_CACHE_DIR: compilation
   included) and warm.
 
 The ``multi-particle`` section (the settle scene beside LIGGGHTS) is measured by
-``minidem.bench_multi``; it runs only when asked for (``--only multi-particle``).
+``minidem.studies.bench_multi``; it runs only when asked for (``--only multi-particle``).
 """
 
 from __future__ import annotations
@@ -36,11 +36,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from minidem import reference
+from minidem.studies import reference
 
 MEASURES = ("y1", "y2", "et")
-SCENARIO = Path(__file__).resolve().parent.parent / "scenarios" / "oblique.toml"
-DOCS = Path(__file__).resolve().parent.parent / "docs"
+SCENARIO = Path(__file__).resolve().parents[2] / "scenarios" / "oblique.toml"
+DOCS = Path(__file__).resolve().parents[2] / "docs"
 DEFAULT_STEPS_PER_CONTACT = 4000  # scenario.py's run.steps_per_contact default
 TARGET_ERROR = 1e-4  # issue 5: every paper case within 1e-4 of the reference at the default
 REFERENCE_RTOL = (1e-10, 1e-12)
@@ -93,7 +93,9 @@ def engine_case(law: str, angle_deg: float, steps_per_contact: int = DEFAULT_STE
                 settings=(), kernel_flags: dict | None = None) -> tuple[dict, float]:
     """Summary of one engine impact and the median wall time of ``Simulation(scene).run()``
     (set-up included, kernel already compiled by a warm-up run)."""
-    from minidem import analysis, scenario, simulation
+    from minidem.results import analysis
+    from minidem.scene import scenario
+    from minidem.engine import simulation
 
     overrides = [f"impact.angle_deg={angle_deg!r}", f'contact.law="{law}"',
                  f"run.steps_per_contact={steps_per_contact}", f'run.integrator="{integrator}"']
@@ -216,7 +218,9 @@ def model_only(rounds: int, steps_per_contact: int = DEFAULT_STEPS_PER_CONTACT, 
     """[(label, steps, median wall s, median CPU s per impact, et)] for the MODEL_ONLY
     kernels, measured in interleaved rounds (every kernel once per round) so that a
     change in the machine's load hits them all alike."""
-    from minidem import analysis, scenario, simulation
+    from minidem.results import analysis
+    from minidem.scene import scenario
+    from minidem.engine import simulation
 
     cases = []
     for label, settings, flags in MODEL_ONLY:
@@ -237,12 +241,14 @@ def model_only(rounds: int, steps_per_contact: int = DEFAULT_STEPS_PER_CONTACT, 
 
 
 # The paper sweep as a user runs it: the oblique scenario with a [sweep] table, through
-# minidem.sweep's public entry points (plan, run), default settings
+# minidem.studies.sweep's public entry points (plan, run), default settings
 _SWEEP_SCRIPT = """
 import json, sys, tempfile, time
 started = time.perf_counter()
-from minidem import reference, scenario, sweep
-from minidem.bench import SCENARIO
+from minidem.studies import reference
+from minidem.scene import scenario
+from minidem.studies import sweep
+from minidem.studies.bench import SCENARIO
 imported = time.perf_counter()
 data = scenario.read_toml(SCENARIO)
 data["sweep"] = {"cases": {"contact.law": list(reference.LAWS), "impact.angle_deg": list(reference.PAPER_ANGLES_DEG)},
@@ -352,7 +358,7 @@ def section_single_impact(rows: dict, angles, command: str) -> str:
         stamp(command),
         "",
         f"The engine (`Simulation(scene).run()`, default settings: `run.steps_per_contact = "
-        f"{DEFAULT_STEPS_PER_CONTACT}`) against `minidem.reference` (adaptive Dormand-Prince 5(4) on the laws "
+        f"{DEFAULT_STEPS_PER_CONTACT}`) against `minidem.studies.reference` (adaptive Dormand-Prince 5(4) on the laws "
         f"in rate form, every switch located as an event; see its docstring) on the paper's impact, "
         f"{len(angles)} angles from {min(angles):g} to {max(angles):g} deg. Worst absolute error over the "
         "angles, and the angle where it occurs. The last column is the largest difference between the "
@@ -479,7 +485,7 @@ def section_model_only(rows: list, command: str) -> str:
         "specialised for it and through kernels with scene-shape flags forced on "
         "(`Simulation(scene, kernel_flags=...)`): the results are identical (et column), only the work "
         "differs. A flag that is off removes its loops, arrays and branches from the compiled step "
-        "(`minidem/kernel.py`): the pair loop and the neighbour-list displacement check for one particle, the "
+        "(`minidem/engine/kernel.py`): the pair loop and the neighbour-list displacement check for one particle, the "
         "angular velocity and torque updates when no force can exert torque (mu = 0 or a frictionless law), "
         "the cylinder and mesh loops without such walls, the parallel regions (prange) for small scenes. "
         "Medians over interleaved rounds of one `Simulation(scene).run()` each (set-up included); CPU = "
@@ -502,7 +508,7 @@ def section_sweep(timing: dict, command: str, load=None) -> str:
         stamp(command),
         "",
         f"The whole paper sweep ({len(reference.LAWS)} laws x {len(reference.PAPER_ANGLES_DEG)} angles, default "
-        "settings) as `minidem run` runs a `[sweep]` scenario: `minidem.sweep.plan` and `minidem.sweep.run` "
+        "settings) as `minidem run` runs a `[sweep]` scenario: `minidem.studies.sweep.plan` and `minidem.studies.sweep.run` "
         "(workers = worker processes), in a fresh Python process. Cold: empty `MINIDEM_CACHE_DIR` and "
         "`NUMBA_CACHE_DIR` (every kernel compiled: one per law); warm: the same caches filled by the cold run. "
         "Medians. CPU = user + system time of the process and its workers, the figure a busy shared machine "
@@ -543,7 +549,7 @@ _HEADINGS = {"single-impact": "## Single impact: engine error against the refere
 def update_sections(path: Path, sections: dict[str, str]) -> None:
     """Replace the text between ``<!-- bench:NAME -->`` and ``<!-- /bench:NAME -->`` for each
     given section, creating the file (a heading per section) or missing sections."""
-    from minidem.output import atomic_write
+    from minidem.files import atomic_write
 
     text = path.read_text() if path.exists() else "# Benchmarks\n\nWritten by `minidem bench`.\n"
     for name in SECTION_ORDER:
@@ -587,7 +593,7 @@ def run(quick: bool = False, docs: Path = DOCS, sections=ALL_SECTIONS, echo=prin
         results["model_only"] = rows
         texts["model-only"] = section_model_only(rows, command)
     if "multi-particle" in sections:
-        from minidem import bench_multi
+        from minidem.studies import bench_multi
 
         echo("bench: multi-particle throughput (settle scene, minidem and LIGGGHTS interleaved)")
         texts["multi-particle"] = bench_multi.run(1 if quick else 3, command, stamp, echo)

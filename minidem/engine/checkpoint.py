@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from minidem.output import atomic_write
+from minidem.files import atomic_write
 
 FORMAT = 1
 CHECKPOINT = "checkpoint.npz"
@@ -50,7 +50,7 @@ _FREE_KEYS = {("output", "directory"), ("output", "checkpoint_interval"), ("outp
 
 @dataclasses.dataclass
 class Policy:
-    """Where and how often :meth:`minidem.simulation.Simulation.run` writes checkpoints.
+    """Where and how often :meth:`minidem.engine.simulation.Simulation.run` writes checkpoints.
 
     ``interval``: simulated seconds between checkpoints (None: none on that account);
     ``wall_interval``: wall-clock seconds between checkpoints (None or 0: none).
@@ -106,7 +106,7 @@ def read(path: str | Path) -> tuple[dict, dict]:
 def load_for_resume(sim, directory: str | Path) -> tuple[dict, dict]:
     """The checkpoint in ``directory`` if it belongs to this simulation; otherwise a
     ScenarioError that says why and what to do (the CLI exits with code 2)."""
-    from minidem.scenario import ScenarioError
+    from minidem.scene.scenario import ScenarioError
 
     path = Path(directory) / CHECKPOINT
     if not path.exists():
@@ -139,7 +139,7 @@ def load_for_resume(sim, directory: str | Path) -> tuple[dict, dict]:
     return arrays, meta
 
 
-# the temporary names of minidem.output.atomic_write and of the VTK writer's _PendingFile
+# the temporary names of minidem.files.atomic_write and of the VTK writer's _PendingFile
 _TEMPORARY = re.compile(r"^\..+\.(tmp\d+|\d+\.\d+\.tmp)$")
 
 

@@ -23,9 +23,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from minidem import simulation
+from minidem.engine import simulation
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SETTLE = ROOT / "scenarios" / "settle.toml"
 SHARED_BENCH = ROOT.parent / "shared" / "bench" / "liggghts"
 STEPS, DT = 10_000, 2e-5
@@ -33,7 +33,8 @@ JITTER = {"lattice": 0.0, "jitter": 9e-5}  # m, as in settle.md and make_lattice
 
 _CHILD = """
 import json, resource, sys, time
-from minidem import scenario, simulation
+from minidem.scene import scenario
+from minidem.engine import simulation
 n, jitter, threads, steps, vtk, out = sys.argv[1:7]
 if threads.endswith("pinned"):  # every chunk on that many threads: no probes of one (LoopThreads)
     threads = threads.removesuffix("pinned")
@@ -44,7 +45,7 @@ scene = scenario.load_scene(sys.argv[7], overrides, out)
 sim = simulation.Simulation(scene)
 frames = None
 if vtk == "true":
-    from minidem.output.vtk import SimulationFrames
+    from minidem.results.vtk import SimulationFrames
     frames = SimulationFrames(sim, scene.output_directory)
 setup_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 cpu = time.process_time()
@@ -125,8 +126,8 @@ def import_baseline() -> dict:
     code = ("import json\n"
             "r = lambda: int(next(l for l in open('/proc/self/status') if l.startswith('VmHWM')).split()[1]) / 1024\n"
             "out = {'python': r()}\nimport numpy\nout['numpy'] = r()\nimport numba\nout['numba'] = r()\n"
-            "import minidem.simulation\nout['minidem'] = r()\n"
-            "from minidem.neighbours import reverse_index\nimport numpy as np\n"
+            "import minidem.engine.simulation\nout['minidem'] = r()\n"
+            "from minidem.geometry.neighbours import reverse_index\nimport numpy as np\n"
             "reverse_index(np.zeros(2, dtype=np.int64), np.zeros(0, dtype=np.int64), 1)\n"
             "out['first compiled call'] = r()\nprint(json.dumps(out))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
@@ -166,7 +167,7 @@ def measure(repeats: int = 3, sizes=(2_000, 20_000), variants=("lattice", "jitte
         results["load"] = (load, os.getloadavg())
         results["baseline"] = import_baseline()
         echo("bench: neighbour-list build against N")
-        from minidem.neighbours import benchmark_scaling
+        from minidem.geometry.neighbours import benchmark_scaling
 
         results["neighbours"] = benchmark_scaling(n_values=(2_000, 20_000, 200_000), thread_counts=(1,), repeats=3)
         echo("bench: output overhead (VTK at the scene's default interval)")
@@ -273,7 +274,7 @@ def section(results: dict, command: str, stamp) -> str:
         "",
     ]
     scaling = results["neighbours"]
-    lines += ["Neighbour-list build (`minidem.neighbours.build_pairs`, random packings at a fixed volume "
+    lines += ["Neighbour-list build (`minidem.geometry.neighbours.build_pairs`, random packings at a fixed volume "
               "fraction, one thread, median of 3): cost per particle is flat, i.e. linear in N:", "",
               "| N | seconds per build | microseconds per particle |", "|---|---|---|"]
     for (n, _), seconds in sorted(scaling.items()):

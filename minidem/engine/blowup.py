@@ -1,7 +1,7 @@
 """Blow-up detection between chunks of the compiled loop.
 
 The kernel itself stops at the step where a law returns a non-finite force or a sphere
-passes through a wall (status codes in ``minidem.kernel``). What it cannot see from
+passes through a wall (status codes in ``minidem.engine.kernel``). What it cannot see from
 one contact, :class:`Guard` checks once per chunk and before every neighbour-list
 rebuild, with a few vectorised passes over the particle arrays (no Python per step):
 
@@ -30,7 +30,7 @@ import math
 import numba
 import numpy as np
 
-from minidem.integrate import particle_kinetic_energy
+from minidem.engine.integrate import particle_kinetic_energy
 
 # A blow-up grows by orders of magnitude within a few contact times, so generous
 # factors cost almost nothing in detection time and rule out false alarms (velocity

@@ -30,11 +30,11 @@ MARKERS = "os^vDx+*<>ph"
 
 def _series_of(sweep, rows):
     """[(label, [rows])] in first-seen order of the non-angle swept values."""
-    from minidem.sweep import _series, series_of_case
+    from minidem.studies.sweep import series_of_case
 
     keys = sweep.series_keys
     positions = [sweep.keys.index(k) for k in keys]
-    groups = {s: [] for s in _series(sweep)}
+    groups = {s: [] for s in sweep.series()}
     for row, case in zip(rows, sweep.cases):
         if not row.get("error"):
             groups[series_of_case(case, positions)].append(row)
@@ -130,17 +130,16 @@ def plot_force_displacement(sweep, rows, path):
 
 
 def _tangent_of(sweep):
-    from minidem import scenario
+    from minidem.scene import scenario
 
     scene = scenario.build_scene(scenario.apply_overrides(sweep.base, sweep.overrides(0)), sweep.source)
     return scene.impact.tangent if scene.impact is not None else np.array([1.0, 0.0, 0.0])
 
 
 def draw(sweep, rows, directory) -> list[Path]:
-    from minidem.sweep import friction_of
 
     directory = Path(directory)
-    mu = friction_of(sweep)
+    mu = sweep.friction
     written = []
     for figure in sweep.figures:
         path = directory / f"{figure}.png"
@@ -241,7 +240,7 @@ def _distinct_curves(series, theory, scale) -> int:
 def _abscissa_label(sweep):
     """The abscissa's key as a label with its unit from the scenario schema, e.g.
     "impact.spin (rad/s)", "particles.0.angular_velocity.2 (rad/s)"."""
-    from minidem.scenario import SCHEMA
+    from minidem.scene.scenario import SCHEMA
 
     parts = sweep.abscissa.split(".")
     keys = SCHEMA.get(parts[0], (None, ()))[1]

@@ -16,7 +16,10 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from minidem import analysis, laws, scenario, simulation
+from minidem import laws
+from minidem.results import analysis
+from minidem.scene import scenario
+from minidem.engine import simulation
 
 PAPER_SCENE = {
     "materials": {"paper": {"youngs_modulus": 70e9, "poisson_ratio": 0.3, "density": 2650.0}},
@@ -298,9 +301,9 @@ def _write_report(directory: Path, battery: Battery, checks: list[Check], curves
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from minidem import output
+    from minidem import files
 
-    output.write_json(Path(directory) / "verify.json", {
+    files.write_json(Path(directory) / "verify.json", {
         "law": battery.law.name, "package": battery.entry.distribution, "version": battery.entry.version,
         "checks": [dataclasses.asdict(c) for c in checks], "curves": curves})
     mu = battery.friction

@@ -8,12 +8,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:  # the sweep's parent process reads rows without loading the engine
-    from minidem.simulation import RunResult
+    from minidem.engine.simulation import RunResult
 
 
 def kinetic_energy(mass, inertia, velocity, angular_velocity) -> float:
     """Translational plus rotational kinetic energy of all particles (J)."""
-    from minidem import integrate  # here: importing analysis must not load numba (see above)
+    from minidem.engine import integrate  # here: importing analysis must not load numba (see above)
 
     return float(integrate.kinetic_energy(np.ascontiguousarray(mass, dtype=np.float64),
                                           np.ascontiguousarray(inertia, dtype=np.float64),

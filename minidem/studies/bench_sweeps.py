@@ -1,6 +1,6 @@
 """Time one sweep on each back end and worker count (docs/sweeps-on-a-cluster.md).
 
-    python -m minidem.bench_sweeps [--scenario scenarios/bench/sweep500.toml] [--repeats 5]
+    python -m minidem.studies.bench_sweeps [--scenario scenarios/bench/sweep500.toml] [--repeats 5]
 
 Runs ``minidem run SCENARIO --quiet --restart`` as a fresh process for local processes
 (``--workers 1``, ``--workers 2``) and for a Dask scheduler with 1 and 2 workers
@@ -28,7 +28,7 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_SCENARIO = ROOT / "scenarios" / "bench" / "sweep500.toml"
 
 
@@ -79,9 +79,9 @@ def _cpu_model() -> str:
 
 
 def main(argv=None) -> int:
-    from minidem.executors import LocalDaskProcesses, dask_available
+    from minidem.studies.executors import LocalDaskProcesses, dask_available
 
-    parser = argparse.ArgumentParser(prog="python -m minidem.bench_sweeps", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m minidem.studies.bench_sweeps", description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenario", type=Path, default=DEFAULT_SCENARIO)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2])
@@ -118,7 +118,7 @@ def main(argv=None) -> int:
     print(f"Measured {datetime.date.today().isoformat()} on {os.cpu_count()} cores ({_cpu_model()}), "
           f"{platform.system()} {platform.release()}, Python {platform.python_version()}; load average "
           f"{load_before[0]:.1f} before, {load_after[0]:.1f} after; two busy processes got {spare_before:.2f} and "
-          f"{spare_after:.2f} cores' worth together (before, after): the ceiling of any speed-up. `python -m minidem.bench_sweeps --repeats "
+          f"{spare_after:.2f} cores' worth together (before, after): the ceiling of any speed-up. `python -m minidem.studies.bench_sweeps --repeats "
           f"{args.repeats}` on {args.scenario.relative_to(ROOT) if args.scenario.is_relative_to(ROOT) else args.scenario}"
           f" ({next(iter(runs.values()))[0]['cases']} cases); medians of {args.repeats}. sweep.csv identical in "
           f"all {sum(len(r) for r in runs.values())} runs: {'yes' if len(files) == 1 else 'NO'}.\n")

@@ -20,7 +20,7 @@ import time
 import numba
 import numpy as np
 
-from minidem.contact import triangle_closest_point
+from minidem.geometry.primitives import triangle_closest_point
 
 # Cells per particle allowed before the cell size is enlarged. Bounds memory by O(N)
 # when a few far-apart particles would otherwise span a huge, almost empty grid.

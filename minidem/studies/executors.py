@@ -30,8 +30,8 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
-from minidem.scenario import ScenarioError
-from minidem.simulation import RunFailure
+from minidem.scene.scenario import ScenarioError
+from minidem.engine.simulation import RunFailure
 
 DASK_ADDRESS_VARIABLE = "DASK_SCHEDULER_ADDRESS"  # Dask's own convention (dask.config "scheduler-address")
 DASK_MISSING = "the Dask back end needs the dask extra: pip install 'minidem[dask]'"

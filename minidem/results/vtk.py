@@ -19,7 +19,7 @@ file, never a truncated one; ParaView can also safely re-read a series while the
 is still writing it. The fsync (waiting for the disk) dominates the cost of a large
 frame, so by default it runs on a helper thread, off the simulation's critical path.
 
-Timing: ``python -m minidem.output.vtk`` (set ``BENCH_DIR`` to the output disk).
+Timing: ``python -m minidem.results.vtk`` (set ``BENCH_DIR`` to the output disk).
 
 All arrays are written as Float64 (positions, radii, velocities, ... in SI units) or
 Int64 (ids); connectivity is Int64 because the header type is UInt64 throughout.
@@ -36,6 +36,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
+
+from minidem.geometry.walls import plane_to_quad
 
 __all__ = ["VTKSeriesWriter", "plane_to_quad", "write_surface_vtu"]
 
@@ -390,36 +392,6 @@ def write_surface_vtu(
     )
     _atomic_write(path, chunks, fsync)
     return path
-
-
-def plane_to_quad(point, normal, half_size: float) -> tuple[np.ndarray, np.ndarray]:
-    """Finite square stand-in for an infinite plane, for display only.
-
-    Returns ``(vertices (4, 3), faces (1, 4))``: a square of side ``2 * half_size``
-    [m] centred on ``point`` and lying in the plane; the vertices are ordered
-    counter-clockwise seen from the side ``normal`` points to, so the quad's normal
-    (right-hand rule) equals ``normal`` and ParaView's lighting/back-face culling
-    treat the side the particles live on as the front.
-    """
-    p = np.asarray(point, dtype=np.float64).reshape(3)
-    n = np.asarray(normal, dtype=np.float64).reshape(3)
-    norm = np.linalg.norm(n)
-    if not np.isfinite(norm) or norm == 0.0:
-        raise ValueError("plane normal must be a non-zero finite vector")
-    if not half_size > 0.0:
-        raise ValueError("half_size must be positive")
-    n = n / norm
-    # Cross with the axis least aligned with n, which keeps the result well
-    # conditioned for every normal direction.
-    helper = np.zeros(3)
-    helper[np.argmin(np.abs(n))] = 1.0
-    u = np.cross(n, helper)
-    u /= np.linalg.norm(u)
-    v = np.cross(n, u)  # u x v == n
-    h = float(half_size)
-    vertices = np.array([p - h * u - h * v, p + h * u - h * v,
-                         p + h * u + h * v, p - h * u + h * v])
-    return vertices, np.array([[0, 1, 2, 3]], dtype=np.int64)
 
 
 def _mode(binary: bool, encoding: str) -> str:
@@ -817,7 +789,7 @@ if __name__ == "__main__":  # pragma: no cover
 
 
 class SimulationFrames:
-    """The ``on_frame`` callback of :meth:`minidem.simulation.Simulation.run` that writes a
+    """The ``on_frame`` callback of :meth:`minidem.engine.simulation.Simulation.run` that writes a
     ParaView series: ``particles.pvd`` (+ ``particles_contacts.pvd`` when the scene asks
     for the contact network) and ``walls.vtu``, all in ``directory``.
 
@@ -826,7 +798,7 @@ class SimulationFrames:
     """
 
     def __init__(self, simulation, directory):
-        from minidem.walls import display_meshes
+        from minidem.geometry.walls import display_meshes
 
         scene = simulation.scene
         self.scene = scene

@@ -11,7 +11,7 @@ Kinds (``type``):
   closing it at ``point``. Open ends: beyond its length the surface does not exist;
 * ``mesh``: triangles read from an STL/OBJ/... file with meshio, scaled by ``scale`` and
   shifted by ``offset``. A sphere-triangle contact is with the closest point of the
-  triangle (face, edge or vertex); see ``minidem.kernel.mesh_forces`` for how one
+  triangle (face, edge or vertex); see ``minidem.engine.kernel.mesh_forces`` for how one
   contact per feature is kept where triangles share edges. Both sides of a triangle
   repel, so a mesh need not be closed or consistently oriented.
 """
@@ -152,6 +152,36 @@ def cylinder_surface(base, axis, radius, length, segments: int = 48) -> tuple[np
     return vertices, faces
 
 
+def plane_to_quad(point, normal, half_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """Finite square stand-in for an infinite plane, for display only.
+
+    Returns ``(vertices (4, 3), faces (1, 4))``: a square of side ``2 * half_size``
+    [m] centred on ``point`` and lying in the plane; the vertices are ordered
+    counter-clockwise seen from the side ``normal`` points to, so the quad's normal
+    (right-hand rule) equals ``normal`` and ParaView's lighting/back-face culling
+    treat the side the particles live on as the front.
+    """
+    p = np.asarray(point, dtype=np.float64).reshape(3)
+    n = np.asarray(normal, dtype=np.float64).reshape(3)
+    norm = np.linalg.norm(n)
+    if not np.isfinite(norm) or norm == 0.0:
+        raise ValueError("plane normal must be a non-zero finite vector")
+    if not half_size > 0.0:
+        raise ValueError("half_size must be positive")
+    n = n / norm
+    # Cross with the axis least aligned with n, which keeps the result well
+    # conditioned for every normal direction.
+    helper = np.zeros(3)
+    helper[np.argmin(np.abs(n))] = 1.0
+    u = np.cross(n, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)  # u x v == n
+    h = float(half_size)
+    vertices = np.array([p - h * u - h * v, p + h * u - h * v,
+                         p + h * u + h * v, p - h * u + h * v])
+    return vertices, np.array([[0, 1, 2, 3]], dtype=np.int64)
+
+
 def display_meshes(walls: WallSet, extent_lower, extent_upper) -> list[tuple[np.ndarray, np.ndarray]]:
     """Surfaces of all walls for VTK, one mesh per wall in the order of ``WallSet``.
 
@@ -159,7 +189,6 @@ def display_meshes(walls: WallSet, extent_lower, extent_upper) -> list[tuple[np.
     other plane (a box's faces come out as the box's own rectangles, a hopper's walls
     meet at their edges), within a square around the scene: the particles' extent, grown
     to reach every plane's reference point."""
-    from minidem.output.vtk import plane_to_quad
 
     lower, upper = np.asarray(extent_lower, dtype=np.float64), np.asarray(extent_upper, dtype=np.float64)
     centre = 0.5 * (lower + upper)
@@ -213,11 +242,11 @@ def initial_wall_overlaps(walls: WallSet, position: np.ndarray, radius: np.ndarr
     """Particles that overlap a cylinder or a mesh triangle by more than ``tolerance``
     times their radius: (particle, description of the wall, overlap m, centre behind it).
 
-    The overlaps are those the kernel computes (``minidem.contact.cylinder_overlap``,
-    ``triangle_closest_point``); planes are checked by ``minidem.scenario`` itself.
+    The overlaps are those the kernel computes (``minidem.geometry.primitives.cylinder_overlap``,
+    ``triangle_closest_point``); planes are checked by ``minidem.scene.scenario`` itself.
     """
-    from minidem.contact import cylinder_overlap, triangle_closest_point
-    from minidem.neighbours import mesh_candidates
+    from minidem.geometry.primitives import cylinder_overlap, triangle_closest_point
+    from minidem.geometry.neighbours import mesh_candidates
 
     found = []
     for c in range(walls.cylinder_base.shape[0]):

@@ -1,0 +1,2 @@
+"""Results: rebound measures and summaries of a run (``analysis``) and the VTK series
+ParaView opens (``vtk``)."""
