@@ -86,7 +86,7 @@ def command_run(args) -> int:
             warnings.warn(f"{option} ignored: {args.file} has no [sweep] table (a single run)")
     scene = scenario.load_scene(args.file, args.set, args.out)
     directory = scenario.prepare_output_directory(scene.output_directory, scenario.output_origin(args.out, scene.raw), args.file)
-    sim = simulation.Simulation(scene)
+    sim = simulation.Simulation(scene, notify=None if args.quiet else _note)
     policy = checkpoint.Policy(directory, scene.checkpoint_interval, scene.checkpoint_wall_interval)
     resume_from = checkpoint.load_for_resume(sim, directory) if args.resume else None
     if not args.quiet:
@@ -128,7 +128,10 @@ def command_run(args) -> int:
         from minidem.engine.kernel import TRACE_COLUMNS
 
         files.write_csv(directory / "trace.csv", TRACE_COLUMNS, result.trace.tolist())
-    if not args.quiet:
+    if args.quiet:  # --quiet keeps the warnings (docs/cli.md), on standard error
+        for warning in summary["warnings"]:
+            print(f"minidem: warning: {warning}", file=sys.stderr)
+    else:
         print_summary(summary)
         for warning in summary["warnings"]:
             print(f"  warning: {warning}")
@@ -138,6 +141,11 @@ def command_run(args) -> int:
         print(f"  {result.steps} steps in {result.wall_time:.3g} s: {rate:.4g} steps/s, "
               f"{rate * scene.n_particles:.4g} particle-steps/s on {result.threads} thread(s)")
     return EXIT_OK
+
+
+def _note(text: str) -> None:
+    """What a slow step of the set-up is doing (before the header: the time step needs it)."""
+    print(f"minidem: {text} ...", file=sys.stderr, flush=True)
 
 
 def _terminate(signum, frame):
@@ -322,6 +330,7 @@ class _PipeClosedSink:
 
 def main(argv=None) -> int:
     from minidem.laws import LawError
+    from minidem.files import OutputError
     from minidem.scene.scenario import ScenarioError
     from minidem.engine.simulation import RunFailure
 
@@ -339,7 +348,7 @@ def main(argv=None) -> int:
                 raise
             print(f"minidem: error: {exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
-        except RunFailure as exc:
+        except (RunFailure, OutputError) as exc:
             if args.debug:
                 raise
             print(f"minidem: run failed: {exc}", file=sys.stderr)
@@ -348,6 +357,11 @@ def main(argv=None) -> int:
             print("minidem: interrupted", file=sys.stderr)
             return 130
         except Exception as exc:  # noqa: BLE001 - never a bare traceback without --debug
+            from minidem.engine.simulation import interrupted
+
+            if interrupted(exc):  # a Ctrl-C that surfaced as another error (numba's SystemError)
+                print("minidem: interrupted", file=sys.stderr)
+                return 130
             if args.debug:
                 raise
             print(f"minidem: internal error: {type(exc).__name__}: {exc} (rerun with --debug for the traceback)",

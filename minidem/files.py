@@ -11,16 +11,43 @@ import os
 from pathlib import Path
 
 
+class OutputError(OSError):
+    """A result file could not be written (disk full, quota, permissions, a vanished
+    directory): the CLI names the file and exits with code 1. The temporary file is gone
+    and the file's previous version, if any, is untouched. An OSError still (code that
+    catches those keeps working), whose message names the file."""
+
+
+def output_error(path, exc: OSError) -> OutputError:
+    reason = exc.strerror or str(exc)
+    return OutputError(f"cannot write {path}: {reason} (errno {exc.errno}); the files written before are intact"
+                       + ("; free some space and run again" if exc.errno in (28, 122) else ""))
+
+
 def atomic_write(path: str | Path, data: bytes | str) -> Path:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as handle:
-        handle.write(data.encode() if isinstance(data, str) else data)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "wb") as handle:
+            handle.write(data.encode() if isinstance(data, str) else data)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        _remove_quietly(tmp)
+        raise output_error(path, exc) from exc
+    except BaseException:  # Ctrl-C half-way: no temporary left behind either
+        _remove_quietly(tmp)
+        raise
     return path
+
+
+def _remove_quietly(path) -> None:
+    try:
+        os.unlink(path)
+    except OSError:
+        pass
 
 
 def write_json(path: str | Path, payload: dict) -> Path:

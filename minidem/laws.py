@@ -467,14 +467,14 @@ def load_registry(extra_plugins: tuple = ()) -> LawRegistry:
     for (dist, version), ep in sorted(found, key=lambda item: (item[0][0] != hookspecs.PROJECT_NAME, item[1].name)):
         try:
             plugins.append((ep.name, dist, version, ep.load()))
-        except Exception as exc:  # noqa: BLE001 - any failure of a plugin is reported, never fatal
+        except PLUGIN_FAULTS as exc:  # any failure of a plugin is reported, never fatal
             registry.broken.append(BrokenPlugin(f"{ep.name} ({dist})", None, _one_line(exc)))
     for index, obj in enumerate(extra_plugins):
         plugins.append((getattr(obj, "__name__", f"extra{index}"), "<in-process>", "", obj))
     for plugin_name, dist, version, obj in plugins:
         try:
             manager.register(obj, name=plugin_name)
-        except Exception as exc:  # noqa: BLE001
+        except PLUGIN_FAULTS as exc:
             registry.broken.append(BrokenPlugin(plugin_name, None, f"invalid hook implementation: {_one_line(exc)}"))
             continue
         impls = [i for i in manager.hook.minidem_register_laws.get_hookimpls() if i.plugin is obj]
@@ -482,10 +482,16 @@ def load_registry(extra_plugins: tuple = ()) -> LawRegistry:
             registry._current = (plugin_name, dist, version)
             try:
                 impl.function(registry=registry)
-            except Exception as exc:  # noqa: BLE001
+            except PLUGIN_FAULTS as exc:
                 registry.broken.append(BrokenPlugin(plugin_name, None, f"minidem_register_laws raised {_one_line(exc)}"))
         registry._current = ("<direct>", "<direct>", "")
     return registry
+
+
+# What a plugin's code may raise without taking minidem down: every exception, and
+# sys.exit() (SystemExit) or a stray GeneratorExit at import or in a hook; only Ctrl-C
+# (KeyboardInterrupt) goes through, to stop minidem as the user asked.
+PLUGIN_FAULTS = (Exception, SystemExit, GeneratorExit)
 
 
 def _one_line(exc: BaseException) -> str:
@@ -534,7 +540,7 @@ def _call_law_function(law: ContactLaw, what: str, function, *args):
         return function(*args)
     except LawError:
         raise
-    except Exception as exc:  # noqa: BLE001
+    except PLUGIN_FAULTS as exc:
         raise LawError(f"law '{law.name}': its {what}() failed: {_one_line(exc)}") from exc
 
 

@@ -283,3 +283,11 @@ def test_a_sweep_writes_its_chung_ooi_figure(tmp_path):
     assert "hertz_peak_force_n" in header and "rigid_spin_rad_s" in header
     for row in rows:
         assert row["max_overlap_m"] == pytest.approx(row["hertz_max_overlap_m"], rel=5e-3)
+
+
+def test_force_time_figure_without_traces_is_refused():
+    data = tomllib.loads((FILES / "test2.toml").read_text())
+    data["sweep"]["keep_traces"] = False
+    with pytest.raises(ScenarioError, match=r'sweep.figures: "force_time" plots the cases\' traces: it needs '
+                                            r"sweep.keep_traces = true"):
+        sweep.plan(data, "test2.toml")

@@ -95,7 +95,7 @@ CASES = {
                      "Available: hm, hmd, hmdns_integral, hmdns_integral_reset, ls, lth"]),
     "unknown_law_parameter": (None, ["--set", "contact.frcition=0.2"],
                               ["contact", "unknown parameter 'frcition' for law 'hmd'", "did you mean 'friction'?",
-                               "valid: friction, restitution, reversal_check"]),
+                               "valid: friction, partial_slip_reversal_check, restitution, reversal_check, special_case"]),
     "missing_law_parameter": (edit("friction = 0.1\n", ""), [],
                               ["contact", "law 'hmd' needs parameter 'friction'", "bounds [0, inf)"]),
     "negative_radius": (edit("radius = 0.025 ", "radius = -0.025 "), [], ["impact.radius", "must be > 0 m", "-0.025"]),
@@ -334,8 +334,12 @@ def no_compile(monkeypatch):
     """A bad output directory must be refused before anything is compiled or run."""
     from minidem.engine import simulation
 
-    def refuse(*args, **kwargs):
-        raise AssertionError("the simulation was built before the output directory was checked")
+    real = simulation.Simulation
+
+    def refuse(*args, compile=True, **kwargs):
+        if compile:  # validation alone (a sweep's every case, compile=False) compiles nothing
+            raise AssertionError("the simulation was built before the output directory was checked")
+        return real(*args, compile=False, **kwargs)
 
     monkeypatch.setattr(simulation, "Simulation", refuse)
 

@@ -27,7 +27,7 @@ from minidem.builtin_laws.common import (
 from minidem.laws import ContactLaw, HistorySlot, Parameter
 
 # indices into the constants row (the order of HERTZ_CONSTANTS)
-HERTZ_MODULUS, SHEAR_MODULUS, MU, DAMPING, KAPPA, REVERSAL_CHECK, SPECIAL_CASE = range(7)
+HERTZ_MODULUS, SHEAR_MODULUS, MU, DAMPING, KAPPA, REVERSAL_CHECK, SPECIAL_CASE, PARTIAL_SLIP_REVERSAL_CHECK = range(8)
 HERTZ_CONSTANTS = (
     "hertz_modulus",  # 4/3 E*, Pa: Fn = hertz_modulus sqrt(R*) d^1.5
     "shear_modulus",  # 8 G*, Pa: kt = 8 G* a, a = sqrt(R* d)
@@ -36,6 +36,7 @@ HERTZ_CONSTANTS = (
     "stiffness_ratio",  # kappa = 4 G*/E* (eq 10)
     "reversal_check",  # hmd only, see hmd_force
     "special_case",  # hmd only: reading of eq 24, see SPECIAL_* below
+    "partial_slip_reversal_check",  # hmd only: reversal in partial slip while Fn falls, see hmd_force
 )
 
 
@@ -48,6 +49,7 @@ def prepare_hertz(pair, params):
         "stiffness_ratio": pair.stiffness_ratio,
         "reversal_check": params.get("reversal_check", 1.0),
         "special_case": params.get("special_case", 0.0),
+        "partial_slip_reversal_check": params.get("partial_slip_reversal_check", 1.0),
     }
 
 
@@ -110,8 +112,8 @@ SPECIAL_READINGS = (SPECIAL_STEP, SPECIAL_TOTAL, SPECIAL_FORCE, SPECIAL_DISPLACE
 @numba.njit(cache=True, inline="always")
 def _hmd_theta(mode, force_along, ft_star, ft_2star, fn, mu):
     """theta of eqs 22a-c at one instant (the rate form: the discrete mu dFn terms of
-    the paper's incremental statement vanish with dt and are accounted for by taking
-    theta at the middle of the step)."""
+    the paper's incremental statement vanish with dt; the step itself is integrated by
+    _hmd_branch_step). Used to tell partial slip (theta < 1) at the start of a step."""
     if fn <= 0.0:
         return 1.0 if force_along == 0.0 else 0.0
     if mode == UNLOADING:
@@ -121,6 +123,93 @@ def _hmd_theta(mode, force_along, ft_star, ft_2star, fn, mu):
     else:
         theta_cubed = 1.0 - force_along / (mu * fn)  # 22a
     return min(max(theta_cubed, 0.0), 1.0) ** (1.0 / 3.0)
+
+
+@numba.njit(cache=True, inline="always")
+def _step_mean_sqrt(overlap_start, overlap_end):
+    """Mean of sqrt(d) over a step in which the overlap d goes linearly from start to end,
+    (2/3) (e^1.5 - s^1.5) / (e - s), written without the cancellation at e = s.
+
+    The tangential stiffness 8 G* a, a = sqrt(R d), grows as sqrt(t) from first touch; the
+    midpoint value integrates it with an error of dt^3 a'' per step, and a'' ~ t^(-3/2)
+    sums to O(dt^1.5) over the contact (measured: et order 1.5 at 5 deg). The exact mean
+    over the step leaves the smooth O(dt^2) part."""
+    start = math.sqrt(max(overlap_start, 0.0))
+    end = math.sqrt(max(overlap_end, 0.0))
+    if start + end == 0.0:
+        return 0.0
+    return (2.0 / 3.0) * (start * start + start * end + end * end) / (start + end)
+
+
+@numba.njit(cache=True, inline="always")
+def _hmd_branch_step(mode, force_along, ft_star_end, ft_2star_end, fn, dfn, mu, elastic_increment):
+    """Eqs 21-23 over one step on the current branch, (Ft at the end, theta at the middle).
+
+    Write a branch's eq 22 as theta^3 = Z / (c mu Fn): c = 1 and Z = mu Fn - Ft loading,
+    c = 2 and Z = 2 mu Fn - (Ft* - Ft) unloading, 2 mu Fn - (Ft - Ft**) reloading. With
+    eqs 21 and 23 in rate form, Z' = -theta h, h = 8 G* a D vt - mu Fn' (D = -1 unloading,
+    +1 otherwise: the admissibility function of a reversal), so Z^(2/3) obeys
+
+        d(Z^(2/3))/dt = -(2/3) h / (c mu Fn)^(1/3)
+
+    whose right-hand side does not depend on the force at all: the midpoint rule on it is a
+    quadrature, second order in dt up to and including the arrival at theta = 0 (the
+    Coulomb limit, where Ft itself behaves as (t_c - t)^(3/2) and a midpoint step on Ft
+    loses an order). Z <= 0 at the end of the step is the Coulomb limit reached inside it,
+    and the force is then exactly on it, wherever in the step that happened."""
+    fn_start = fn - dfn
+    fn_mid = fn - 0.5 * dfn
+    if fn_start <= 0.0 or fn_mid <= 0.0 or fn <= 0.0:
+        # no contact area at the start: eq 21 with theta = 1 (the cap of the caller acts)
+        return force_along + elastic_increment, 1.0
+    if mode == UNLOADING:
+        reach = 2.0
+        distance = (ft_star_end - mu * dfn) - force_along
+        direction = -1.0
+    elif mode == RELOADING:
+        reach = 2.0
+        distance = force_along - (ft_2star_end + mu * dfn)
+        direction = 1.0
+    else:
+        reach = 1.0
+        distance = force_along
+        direction = 1.0
+    if distance <= 0.0:
+        # the force is at or ahead of the branch's reversal point: eq 22 clipped gives
+        # theta = 1, eq 21 is elastic, as long as it stays there (a branch that began
+        # where the Coulomb limit shrinks faster than the elastic force, which the
+        # admissibility test of partial_slip_reversal_check = 1 prevents)
+        elastic_end = force_along + elastic_increment
+        if mode == UNLOADING:
+            distance_elastic = ft_star_end - elastic_end
+        elif mode == RELOADING:
+            distance_elastic = elastic_end - ft_2star_end
+        else:
+            distance_elastic = elastic_end
+        if distance_elastic <= 0.0:
+            return elastic_end, 1.0
+    reach_start = reach * mu * fn_start
+    z_start = min(max(reach_start - distance, 0.0), reach_start)
+    s_start = z_start ** (2.0 / 3.0)
+    # h over the step: 8 G* a(mid) D dd - mu dFn
+    admissibility = direction * elastic_increment - mu * dfn
+    scale_mid = (reach * mu * fn_mid) ** (1.0 / 3.0)
+    s_end = s_start - (2.0 / 3.0) * admissibility / scale_mid
+    reach_end = reach * mu * fn
+    z_end = max(s_end, 0.0) ** 1.5
+    if z_end > reach_end:
+        # theta reaches 1 within the step (the force overtakes the reversal point, Ft*
+        # falling faster under eq 23 than Ft does): eq 22 clipped, eq 21 elastic. Its rate
+        # equals the branch's at theta = 1, so the whole step is taken elastic.
+        return force_along + elastic_increment, 1.0
+    distance_end = reach_end - z_end
+    s_mid = max(0.5 * (s_start + s_end), 0.0)
+    theta = min(math.sqrt(s_mid) / scale_mid, 1.0)
+    if mode == UNLOADING:
+        return ft_star_end - distance_end, theta
+    if mode == RELOADING:
+        return ft_2star_end + distance_end, theta
+    return distance_end, theta
 
 
 @numba.njit(cache=True, inline="always")
@@ -171,10 +260,11 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
     fn = stiffness * normal_overlap ** 1.5
     fn_old = stiffness * max(normal_overlap - normal_overlap_increment, 0.0) ** 1.5
     dfn = fn - fn_old
-    # 8 G* a at the middle of the step: with the end-of-step radius the update is only
-    # first order in dt (measured against minidem.studies.reference); see also _hmd_theta
-    mid_overlap = max(normal_overlap - 0.5 * normal_overlap_increment, 0.0)
-    stick_stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius * mid_overlap)
+    # 8 G* a averaged over the step (the overlap linear in it): with the end-of-step
+    # radius the update is only first order in dt, and with the mid-step radius the
+    # sqrt(t) growth of a after first touch costs half an order (see _step_mean_sqrt)
+    stick_stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius) * _step_mean_sqrt(
+        normal_overlap - normal_overlap_increment, normal_overlap)
     limit = mu * max(normal_force, 0.0)
     reading = int(constants[SPECIAL_CASE])
 
@@ -241,8 +331,26 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
         reversal_lag = previous_along / (previous_along - along)
         reversal_shift = mu * dfn * (reversal_lag - 0.5)
 
+    # A reversed increment in partial slip while Fn falls (issue 13, models.md "The
+    # reading that gives the paper's 4 %"): the new branch would start elastic (theta = 1)
+    # and unload at 8 G* a |dd|, slower than the Coulomb limit mu Fn shrinks (mu |dFn|),
+    # so its eq-22 theta would exceed 1. The current branch goes on under eq 21 with the
+    # actual increment until 8 G* a |dd| > mu |dFn|, and reverses there. At that crossing
+    # the old branch moves Ft by mu dFn a step (eq 21 with 8 G* a dd = mu dFn) and so does
+    # eq 23 move Ft*: the new reversal point is Ft at the start of the step plus the whole
+    # step's mu dFn, wherever in the step the crossing lay (reversal_shift = 0). Full slip
+    # (theta = 0) is the same test, made by reversal_check below.
+    direction = -1.0 if mode == UNLOADING else 1.0
+    holds_branch = False
+    if (constants[PARTIAL_SLIP_REVERSAL_CHECK] != 0.0 and dfn < 0.0 and not special and history[SLIDING] == 0.0
+            and direction * along < 0.0
+            and _hmd_theta(mode, force_along, ft_star, ft_2star, fn - dfn, mu) < 1.0):
+        reversal_shift = 0.0
+        holds_branch = stick_stiffness * abs(along) <= -mu * dfn
     stays_sliding = False
-    if history[SLIDING] != 0.0 and constants[REVERSAL_CHECK] != 0.0:
+    if holds_branch:
+        pass  # not admissible yet: no branch switch below
+    elif history[SLIDING] != 0.0 and constants[REVERSAL_CHECK] != 0.0:
         # While sliding, a reversed displacement starts unloading only when the elastic
         # trial force is back inside the Coulomb cone (the test LS and HM make); with
         # reversal_check = 0 the branch reverses the instant the displacement does.
@@ -265,23 +373,15 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
         force_along = limit
         cross_x, cross_y, cross_z = 0.0, 0.0, 0.0
     else:
-        branch_sign = -1.0 if mode == UNLOADING else 1.0
-        if special:
-            theta = 1.0  # eqs 19 and 24: increments below mu dFn cause no slip
-        else:
-            # eq 21 integrated by the midpoint rule: theta from a half-step predictor
-            # (eqs 22a-c evaluated at the middle of the step), so the law is second
-            # order in dt like the others instead of first
-            theta = _hmd_theta(mode, force_along, ft_star, ft_2star, fn - dfn, mu)
-            predicted = force_along + 0.5 * (stick_stiffness * theta * along
-                                             + branch_sign * mu * dfn * (1.0 - theta))
-            theta = _hmd_theta(mode, predicted, ft_star + 0.5 * mu * dfn, ft_2star - 0.5 * mu * dfn,
-                               fn - 0.5 * dfn, mu)
         force_start, star_start = force_along, ft_star
         ft_star += mu * dfn  # eq 23
         ft_2star -= mu * dfn
-        # eq 21: dFt = 8 G* a theta dd (+/-) mu dFn (1 - theta)
-        force_along += stick_stiffness * theta * along + branch_sign * mu * dfn * (1.0 - theta)
+        if special:
+            theta = 1.0  # eqs 19 and 24: increments below mu dFn cause no slip
+            force_along += stick_stiffness * along  # eq 21 with theta = 1
+        else:
+            force_along, theta = _hmd_branch_step(mode, force_along, ft_star, ft_2star, fn, dfn, mu,
+                                                  stick_stiffness * along)
         tangent_stiffness = stick_stiffness * theta
         cross_x += tangent_stiffness * (ddx - along * ax)
         cross_y += tangent_stiffness * (ddy - along * ay)
@@ -335,10 +435,11 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
 def hm_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
              normal_velocity, tangential_increment, tangential_velocity, history):
     normal_force = hertz_normal_force(constants, effective_radius, effective_mass, normal_overlap, normal_velocity)
-    # eq 39 integrated with the stiffness at the middle of the step: the end-of-step
-    # contact radius makes the update first order in dt (measured against the reference)
-    mid_overlap = max(normal_overlap - 0.5 * normal_overlap_increment, 0.0)
-    stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius * mid_overlap)
+    # eq 39 integrated with the stiffness averaged over the step (as hmd's): the
+    # end-of-step contact radius makes the update first order in dt, the mid-step one
+    # order 1.5 (measured against the reference; see _step_mean_sqrt)
+    stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius) * _step_mean_sqrt(
+        normal_overlap - normal_overlap_increment, normal_overlap)
     ftx, fty, ftz = incremental_spring(history, stiffness, tangential_increment,
                                        constants[MU] * max(normal_force, 0.0))
     return normal_force, ftx, fty, ftz
@@ -466,7 +567,12 @@ HMD = _law(
                    "under eq 19 ends: 0 per step (eq 19 negated), 1 8 G* a |delta_t| > mu Fn, "
                    "2 |Ft - Ft0| > mu (Fn - Fn0), 3 8 G* a |delta_t - delta_t0| > mu (Fn - Fn0), "
                    "4 accumulated displacement deficit, 5 when Fn stops growing (see docs/laws.md)", low=0.0,
-                   high=5.0)),
+                   high=5.0),
+           _Choice("partial_slip_reversal_check", 1.0, "-", "1: while Fn decreases in partial slip "
+                   "(theta < 1), a reversed increment starts the new branch only once it is admissible, "
+                   "8 G* a |d(delta_t)| > mu |dFn|, the current branch going on under eq 21 until then "
+                   "(the reading that gives the paper's 4 % at 1 deg); 0: at once, when the increment "
+                   "reverses (minidem before issue 13; see docs/laws.md)", low=0.0, high=1.0)),
 )
 HM = _law("hm", "Hertz + Mindlin no-slip, incremental Ft += 8 G* a dd (eq 39)", hm_force, _FORCE_SLOT,
           "Thornton, Cummins & Cleary (2011) section 3.3", aliases=("hertz_mindlin",))

@@ -97,7 +97,9 @@ def write(path: str | Path, arrays: dict, meta: dict) -> Path:
 
 def read(path: str | Path) -> tuple[dict, dict]:
     """(arrays, meta) of a checkpoint file."""
-    with np.load(path, allow_pickle=False) as data:
+    # opened here, so a truncated or foreign file is closed when np.load refuses it
+    # (np.load given a path leaks its handle then: 'unclosed file' after the error)
+    with open(path, "rb") as handle, np.load(handle, allow_pickle=False) as data:
         arrays = {name: data[name] for name in data.files if name != "meta"}
         meta = json.loads(bytes(data["meta"]).decode())
     return arrays, meta

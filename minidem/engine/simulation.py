@@ -30,6 +30,7 @@ import numpy as np
 from minidem import __version__, laws
 from minidem.engine import integrate, kernel
 from minidem.geometry import neighbours, primitives
+from minidem.scene import derived
 from minidem.scene.scenario import Scene, ScenarioError
 
 # OpenMP first: its threads wait briefly at the end of a parallel region instead of
@@ -434,11 +435,17 @@ class State:
 class Simulation:
     """A scene bound to a compiled kernel, its constants and its time step."""
 
-    def __init__(self, scene: Scene, registry: laws.LawRegistry | None = None, kernel_flags: dict | None = None):
+    def __init__(self, scene: Scene, registry: laws.LawRegistry | None = None, kernel_flags: dict | None = None,
+                 compile: bool = True, notify=None):
         """``kernel_flags`` forces scene-shape flags on (e.g. {"PAIRS": True}) to measure
         what modelling only what a scene needs saves (``minidem bench``); results are
-        the same, only the cost differs."""
+        the same, only the cost differs. ``compile=False`` stops after the constants, the
+        time step and the checks of what they imply (validation: a sweep's every case,
+        the input fuzz test); such a Simulation cannot run. ``notify(text)``: told what is
+        being prepared when a law's prepare() or the kernel's compilation takes more than
+        SLOW_NOTICE_S (the CLI prints it), so a long wait is never silent."""
         self.scene = scene
+        self.notify = notify
         if scene.walls is None:  # a Scene built by hand: planes only
             from minidem.geometry.walls import WallSet
 
@@ -451,19 +458,27 @@ class Simulation:
         self.pairs = scene.n_particles > 1
         self.parallel = scene.n_particles > PARALLEL_ABOVE and scene.stop != "separation"
         self.skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
-        self._prepare_constants()
-        self.dt, self.dt_reason = self._choose_time_step()
-        self._plan_flight()
+        # what the values imply (constants, contact time, dt, step count), checked before
+        # the kernel is compiled: out of float64 range is bad input naming the keys
+        with derived.arithmetic(scene, "deriving the contact constants and the time step"):
+            self._prepare_constants()
+            self.dt, self.dt_reason = self._choose_time_step()
+            self._plan_flight()
+        derived.check_simulation(self)
+        self.state: State | None = None
+        self.interrupted_at: tuple[float, Path] | None = None  # (time s, checkpoint) after Ctrl-C
+        if not compile:
+            return
         forced = kernel_flags or {}
         self.spin = forced.get("SPIN", self.spin)
         self.pairs = forced.get("PAIRS", self.pairs)
         self.parallel = forced.get("PARALLEL", self.parallel)
-        self.kernel = compile_kernel(self.entry, self.spin, self.pairs,
-                                     forced.get("CYLINDERS", scene.walls.cylinder_base.shape[0] > 0),
-                                     forced.get("MESHES", scene.walls.triangles.shape[0] > 0), self.parallel,
-                                     scene.integrator)
-        self.state: State | None = None
-        self.interrupted_at: tuple[float, Path] | None = None  # (time s, checkpoint) after Ctrl-C
+        with _notice_if_slow(notify, f"compiling (or loading from the cache) the kernel of law '{self.law.name}' "
+                             "for this scene: a first run of a law and scene shape takes a minute or so"):
+            self.kernel = compile_kernel(self.entry, self.spin, self.pairs,
+                                         forced.get("CYLINDERS", scene.walls.cylinder_base.shape[0] > 0),
+                                         forced.get("MESHES", scene.walls.triangles.shape[0] > 0), self.parallel,
+                                         scene.integrator)
 
     # -- constants -------------------------------------------------------------
     def _reference_size(self) -> tuple[float, float]:
@@ -499,10 +514,13 @@ class Simulation:
             for b in range(a, n):
                 pair = laws.ContactPair.from_materials(materials[a], materials[b], radius, mass, speed)
                 try:
-                    row, named = law.prepared_constants(pair, scene.law_parameters)
+                    with _notice_if_slow(self.notify, f"preparing law '{law.name}' ({self.entry.distribution}) for "
+                                         f"materials '{materials[a].name}'/'{materials[b].name}' (its prepare() "
+                                         f"is still running)"):
+                        row, named = law.prepared_constants(pair, scene.law_parameters)
                 except laws.LawError:
                     raise
-                except Exception as exc:  # noqa: BLE001 - a plugin's prepare() is user code
+                except laws.PLUGIN_FAULTS as exc:  # a plugin's prepare() is user code (sys.exit too)
                     # a ValueError is how prepare() refuses parameters (its message is for the
                     # user); anything else is a bug in it: say what and where
                     why = str(exc) if type(exc) is ValueError else laws._one_line(exc)
@@ -675,6 +693,14 @@ class Simulation:
         self.start_time = duration
         self.start_position, self.start_velocity = position[None, :].copy(), velocity[None, :].copy()
 
+    @property
+    def end_time(self) -> float:
+        """run.end_time, or the default: the flight to first touch and 100 contact times."""
+        scene = self.scene
+        if scene.end_time is not None:
+            return scene.end_time
+        return max(self.start_time, self.flight_time) + 100.0 * self.reference_contact_time
+
     # -- neighbour lists -----------------------------------------------------------
     def rebuild(self, state: State) -> None:
         """New Verlet lists at the current positions; every contact keeps its history."""
@@ -779,8 +805,7 @@ class Simulation:
         status = np.zeros(4, dtype=np.int64)
         tracking = (probe_wall, probe, stats, status)
         stop_at_separation = scene.stop == "separation"
-        end_time = scene.end_time if scene.end_time is not None else \
-            max(self.start_time, self.flight_time) + 100.0 * self.reference_contact_time
+        end_time = self.end_time
         if not math.isfinite(end_time):
             raise ScenarioError(f"{scene.source}: run.end_time is needed: the scene has no contact to stop at")
         start_time = self.start_time  # > 0 after an analytic flight to first touch
@@ -955,7 +980,11 @@ class Simulation:
                     chunk = min(chunk, max(2 * LoopThreads.MIN_STEPS, chunk // LoopThreads.PROBE_FRACTION))
                 trace = np.zeros((chunk, len(kernel.TRACE_COLUMNS))) if scene.trace else no_trace
                 chunk_started = wallclock.perf_counter()
-                taken, needs_rebuild = call(steps, chunk, completing, trace, chunk_threads)
+                # compiled code never sees a signal before it returns anyway: held, a
+                # Ctrl-C is delivered here after the call, never inside numba's dispatcher
+                # (which then returned 'a result with an exception set', a SystemError)
+                with _interrupts_deferred():
+                    taken, needs_rebuild = call(steps, chunk, completing, trace, chunk_threads)
                 loop_threads.record(chunk_threads, taken, wallclock.perf_counter() - chunk_started)
                 if scene.trace:
                     trace_chunks.append(trace[:taken])
@@ -1008,12 +1037,19 @@ class Simulation:
                 if separating:
                     separated = True
                     break
-        except KeyboardInterrupt:
-            # Ctrl-C (or SIGTERM through the CLI) between chunks: keep what was done
+        except (KeyboardInterrupt, SystemError) as exc:
+            # Ctrl-C (or SIGTERM through the CLI) between chunks: keep what was done. A
+            # SystemError caused by a Ctrl-C (one that reached the dispatcher of a compiled
+            # function from another thread) is the same interrupt.
+            if not interrupted(exc):
+                raise
             if policy is not None:
-                self.interrupted_at = (start_time + good["loop"]["steps"] * self.dt,
-                                       write_state(checkpoint.CHECKPOINT, good, "checkpoint"))
-            raise
+                with _interrupts_deferred():  # a second Ctrl-C must not tear this checkpoint
+                    written = write_state(checkpoint.CHECKPOINT, good, "checkpoint")
+                    self.interrupted_at = (start_time + good["loop"]["steps"] * self.dt, written)
+            if isinstance(exc, KeyboardInterrupt):
+                raise
+            raise KeyboardInterrupt from exc
         if frames_on and loop["last_frame_step"] != loop["steps"]:
             # the state the run ends in is always a frame (also when the output interval
             # does not divide the run, or exceeds it): ParaView's last frame is the result
@@ -1067,15 +1103,64 @@ class Simulation:
 def _interrupts_deferred():
     """Hold SIGINT and SIGTERM for the duration of the block: they are delivered (and
     raise KeyboardInterrupt through the CLI's handler) as soon as it ends, so that the
-    copy of the last good state, which a Ctrl-C writes as the checkpoint, is never torn."""
-    if not hasattr(signal, "pthread_sigmask"):  # not on Windows: no deferral there
+    copy of the last good state, which a Ctrl-C writes as the checkpoint, is never torn.
+
+    The handlers are swapped for one that only records the signal (a signal mask would
+    hold it in this thread only: a Ctrl-C sent to the process, delivered to one of
+    numba's threads, would still raise here, and inside a compiled function's
+    dispatcher that was 'SystemError: ... returned a result with an exception set').
+    Outside the main thread (a Dask worker's) Python delivers no signal: nothing to hold."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
-    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    caught = []
+    previous = {number: signal.signal(number, lambda signum, frame: caught.append(signum))
+                for number in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+        for number, handler in previous.items():
+            # None: a handler installed outside Python (an embedding application) cannot be
+            # put back from here; the default action is the closest
+            signal.signal(number, handler if handler is not None else signal.SIG_DFL)
+        if caught:  # now, to the handlers the run had (KeyboardInterrupt, or the CLI's SIGTERM)
+            signal.raise_signal(caught[0])
+
+
+# A step of the set-up (a law's prepare(), the kernel's compilation) that takes longer
+# than this is announced, so the user knows what minidem is waiting for.
+SLOW_NOTICE_S = 2.0
+
+
+@contextlib.contextmanager
+def _notice_if_slow(notify, text: str):
+    """Call ``notify(text)`` (from a timer thread) if the block runs longer than SLOW_NOTICE_S."""
+    if notify is None:
+        yield
+        return
+    import threading
+
+    timer = threading.Timer(SLOW_NOTICE_S, notify, args=(f"{text} ({SLOW_NOTICE_S:g} s so far)",))
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+
+
+def interrupted(exc: BaseException) -> bool:
+    """Whether ``exc`` is a KeyboardInterrupt or was caused by one (a SystemError of
+    numba's dispatcher when Ctrl-C arrived as a compiled function returned)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 def _numba_cause(exc: Exception) -> str:

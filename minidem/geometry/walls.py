@@ -109,6 +109,8 @@ def read_mesh(path: str | Path, scale: float = 1.0, offset=(0.0, 0.0, 0.0)) -> t
         raise ValueError(f"mesh file '{path}' is a directory; give a surface mesh file (STL, OBJ, PLY, VTK, ...)")
     if not Path(path).is_file():
         raise ValueError(f"no such mesh file '{path}'")
+    if Path(path).suffix.lower() == ".stl":
+        _check_stl(Path(path))
     try:
         with warnings.catch_warnings():
             # meshio first tries an ASCII STL as binary, overflowing a header count
@@ -130,8 +132,70 @@ def read_mesh(path: str | Path, scale: float = 1.0, offset=(0.0, 0.0, 0.0)) -> t
     vertices = np.asarray(mesh.points, dtype=np.float64)
     if vertices.shape[1] == 2:
         vertices = np.column_stack([vertices, np.zeros(len(vertices))])
-    vertices = vertices * scale + np.asarray(offset, dtype=np.float64)
-    return vertices, np.concatenate(faces).astype(np.int64)
+    with np.errstate(all="ignore"):
+        vertices = vertices * scale + np.asarray(offset, dtype=np.float64)
+    faces = np.concatenate(faces).astype(np.int64)
+    _check_triangles(path, vertices, faces, scale)
+    return vertices, faces
+
+
+def _check_stl(path: Path) -> None:
+    """A file named .stl that is neither a whole binary STL (84-byte header, then 50 bytes
+    a triangle) nor ASCII STL text: say which, before meshio reports a decode error or a
+    mesh with no triangles."""
+    data = path.read_bytes()
+    if data[:5].lower() == b"solid":
+        try:
+            text = data.decode("ascii")
+        except UnicodeDecodeError as exc:
+            text = None
+            where = exc.start
+        if text is not None:
+            # facets but no closing line: cut short (text without facets is left to meshio)
+            if "facet" in text.lower() and "endsolid" not in text[-4096:].lower():
+                raise ValueError(f"mesh '{path}' is truncated: an ASCII STL ({len(data)} bytes) without its "
+                                 "closing 'endsolid' line (a copy or download cut short?)")
+            return
+        if len(data) < 84 or len(data) != 84 + 50 * int.from_bytes(data[80:84], "little"):
+            raise ValueError(f"mesh '{path}' is not an STL file: it starts like ASCII STL ('solid') but byte "
+                             f"{where} is not ASCII text, and it is not a binary STL either")
+        return  # a binary STL whose header happens to start with 'solid' (common)
+    if len(data) < 84:
+        raise ValueError(f"mesh '{path}' is not an STL file or is truncated: {len(data)} bytes, less than the "
+                         "84-byte header of a binary STL")
+    count = int.from_bytes(data[80:84], "little")
+    expected = 84 + 50 * count
+    if len(data) < expected:
+        raise ValueError(f"mesh '{path}' is truncated or not an STL file: its binary STL header announces "
+                         f"{count} triangles ({expected} bytes), the file has {len(data)} bytes")
+    if len(data) > expected:
+        raise ValueError(f"mesh '{path}' is not an STL file: neither ASCII STL (starting with 'solid') nor a "
+                         f"binary STL ({len(data)} bytes where its header's {count} triangles need {expected})")
+
+
+def _check_triangles(path, vertices: np.ndarray, faces: np.ndarray, scale: float) -> None:
+    """Every vertex finite and every triangle a real one (non-zero area): a NaN corner or a
+    degenerate triangle has no normal, and a sphere would pass through it unseen."""
+    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise ValueError(f"mesh '{path}': a triangle refers to vertex {int(faces.max())}, the file has "
+                         f"{len(vertices)} vertices")
+    bad = np.flatnonzero(~np.isfinite(vertices).all(axis=1))
+    if bad.size:
+        raise ValueError(f"mesh '{path}': vertex {int(bad[0])} is {vertices[bad[0]].tolist()} after scale = "
+                         f"{scale:g} (a NaN or infinite coordinate{', and ' + str(bad.size - 1) + ' more' if bad.size > 1 else ''}); "
+                         "repair the file or give a scale that keeps coordinates finite")
+    corners = vertices[faces]
+    with np.errstate(all="ignore"):
+        edge1, edge2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+        twice_area = np.linalg.norm(np.cross(edge1, edge2), axis=1)
+        longest = np.max(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2), axis=1)
+        # zero area, or collinear corners to round-off: no normal can be defined
+        degenerate = np.flatnonzero(~(twice_area > 1e-12 * longest**2) | ~np.isfinite(twice_area))
+    if degenerate.size:
+        first = [int(t) for t in degenerate[:5]]
+        raise ValueError(f"mesh '{path}': {degenerate.size} of {len(faces)} triangles have zero area (corners "
+                         f"coincident or in a line), e.g. triangle(s) {first}: {corners[first[0]].tolist()}; "
+                         "remove them (e.g. MeshLab 'Remove Zero Area Faces') or check the file's scale")
 
 
 def cylinder_surface(base, axis, radius, length, segments: int = 48) -> tuple[np.ndarray, np.ndarray]:

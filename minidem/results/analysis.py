@@ -93,7 +93,14 @@ def incomplete_contact(result: RunResult) -> str | None:
     if scene.impact is not None and result.first_contact_time < 0:
         return f"no contact by t = {result.time:.4g} s (run.end_time): no rebound to measure"
     if not result.separated and scene.stop == "separation":
-        return f"the contact had not ended by t = {result.time:.4g} s (run.end_time)"
+        limit = ("run.end_time" if scene.end_time is not None else
+                 "the default run.end_time, 100 contact times")
+        if result.contact_statistics and result.first_contact_time < 0:
+            return (f"no contact by t = {result.time:.4g} s ({limit}): run.stop = \"separation\" had no contact "
+                    "to wait for; to follow a scene as it falls or settles give run.stop = \"time\" and "
+                    "run.end_time")
+        return (f"the contacts had not ended by t = {result.time:.4g} s ({limit}; {result.contacts} contact(s) at "
+                "the end)")
     return None
 
 
@@ -108,8 +115,8 @@ def energy_budget_warning(result: RunResult) -> str | None:
     """A warning if a scene's kinetic energy ever exceeded what it could have: contacts
     are passive, so KE(t) <= KE(0) + the work gravity has done. The samples and that
     work are taken at the same steps (the run's checks). 1e-3 of the budget allows for
-    integration error; the blow-up guard stops a run only at 1000 times the budget, so
-    between the two a run (an unstable time step the user allowed) would end silently."""
+    integration error; the blow-up guard stops a run at twice the budget and a floor
+    (minidem.blowup.ENERGY_FACTOR), so this warns of the smaller excesses in between."""
     scene = result.scene
     if scene.impact is not None or result.energy is None or len(result.energy) == 0:
         return None  # an impact's own check: energy_creation_warning

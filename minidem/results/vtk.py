@@ -101,23 +101,36 @@ class _PendingFile:
             directory, f".{os.path.basename(path)}.{os.getpid()}.{next(_tmp_counter)}.tmp")
         # os.open with 0o666 honours the umask, unlike tempfile.mkstemp's 0o600 which
         # would leave frames unreadable to colleagues after the rename.
-        fd = os.open(self.tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL
-                     | getattr(os, "O_BINARY", 0), 0o666)
+        from minidem.files import output_error
+
+        try:
+            fd = os.open(self.tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL
+                         | getattr(os, "O_BINARY", 0), 0o666)
+        except OSError as exc:
+            raise output_error(path, exc) from exc
         self.file = os.fdopen(fd, "wb")
         try:
             for chunk in chunks:
                 self.file.write(chunk)
             self.file.flush()
+        except OSError as exc:  # a full disk: named, and no temporary left
+            self.abort()
+            raise output_error(path, exc) from exc
         except BaseException:
             self.abort()
             raise
 
     def commit(self, fsync: bool) -> None:
+        from minidem.files import output_error
+
         try:
             if fsync:
                 os.fsync(self.file.fileno())
             self.file.close()
             os.replace(self.tmp, self.path)
+        except OSError as exc:
+            self.abort()
+            raise output_error(self.path, exc) from exc
         except BaseException:
             self.abort()
             raise

@@ -136,6 +136,37 @@ def random_packing(lower, upper, count: int, radius_min: float, radius_max: floa
     return position, radius
 
 
+CSV_COLUMNS = ("x", "y", "z", "radius", "vx", "vy", "vz", "wx", "wy", "wz")
+
+
+def _check_csv_header(path: Path) -> None:
+    """The header line names only columns minidem reads: a file without a header (its
+    first particle would be taken as one) or with a column that would be ignored (Vx for
+    vx: the particle would start at rest) is refused."""
+    with open(path, encoding="utf-8") as handle:
+        header = next((line.split("#", 1)[0] for line in handle if line.split("#", 1)[0].strip()), None)
+    if header is None:
+        return  # empty: refused by the caller
+    cells = [cell.strip() for cell in next(csv.reader([header]))]
+    numbers = 0
+    for cell in cells:
+        try:
+            float(cell)
+            numbers += 1
+        except ValueError:
+            pass
+    if cells and numbers == len(cells):
+        raise ValueError(f"particle CSV '{path}' has no header line: its first line ({header.strip()[:60]}) is "
+                         f"numbers; put a header first, e.g. {','.join(CSV_COLUMNS[:4])}")
+    unknown = [c for c in cells if c not in CSV_COLUMNS]
+    if unknown:
+        raise ValueError(f"particle CSV '{path}' has column(s) {unknown} that minidem does not read (they would "
+                         f"be ignored); valid columns (lower case): {', '.join(CSV_COLUMNS)}")
+    repeated = sorted({c for c in cells if cells.count(c) > 1})
+    if repeated:
+        raise ValueError(f"particle CSV '{path}' has column(s) {repeated} more than once")
+
+
 def read_particles(path: str | Path) -> dict[str, np.ndarray]:
     """Particles from a file: CSV with a header naming at least x, y, z, radius (and
     optionally vx, vy, vz, wx, wy, wz), or any point file meshio reads (.vtu, .vtk, ...)
@@ -155,6 +186,7 @@ def read_particles(path: str | Path) -> dict[str, np.ndarray]:
             raise ValueError(f"cannot read particle CSV '{path}': {exc}") from None
         table = np.atleast_1d(table)
         names = table.dtype.names or ()
+        _check_csv_header(path)
         if names and table.size == 0:
             raise ValueError(f"particle CSV '{path}' has a header ({','.join(names)}) but no data rows; "
                              "give one row per particle")

@@ -35,7 +35,7 @@ class Key:
     low: float | None = None
     high: float | None = None
     low_open: bool = False
-    high_open: bool = False  # only printed (bounds_text); the check that refuses high is a cross-key rule
+    high_open: bool = False
     choices: tuple = ()
     required: bool = False
 
@@ -334,9 +334,50 @@ def read_toml(path: str | Path) -> dict:
         raise ScenarioError(f"{path}: not UTF-8 text ({exc.reason}: byte 0x{raw[exc.start]:02x} at offset "
                             f"{exc.start}, line {line}); a scenario file is TOML, which must be UTF-8") from None
     try:
-        return tomllib.loads(text)
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{path}: TOML syntax error: {exc}") from None
+        raise ScenarioError(f"{path}: TOML syntax error: {_toml_error(exc, text)}") from None
+    except RecursionError:  # tomllib parses nested tables and arrays recursively
+        raise ScenarioError(f"{path}: TOML nested too deeply to read (tables or arrays thousands of levels "
+                            f"deep); a scenario nests at most {MAX_DEPTH} levels") from None
+    _check_depth(data, str(path))
+    return data
+
+
+# A scenario's deepest value is 4 levels down ([sweep] cases = {"key" = [[...]]}); far
+# deeper nesting is a generated or corrupted file, refused before anything recurses on it.
+MAX_DEPTH = 32
+
+
+def _check_depth(value, source: str) -> None:
+    """Refuse tables and arrays nested more than MAX_DEPTH levels (iteratively: the check
+    itself must not overflow the stack it protects)."""
+    pending = [(value, [])]
+    while pending:
+        node, path = pending.pop()
+        if len(path) > MAX_DEPTH:
+            shown = ".".join(path[:4])
+            raise ScenarioError(f"{source}: '{shown}...' is nested {len(path)}+ levels deep; a scenario nests at most "
+                                f"{MAX_DEPTH} levels (tables and arrays)")
+        if isinstance(node, dict):
+            pending.extend((v, path + [str(k)]) for k, v in node.items())
+        elif isinstance(node, list):
+            pending.extend((v, path + [str(i)]) for i, v in enumerate(node))
+
+
+def _toml_error(exc: tomllib.TOMLDecodeError, text: str) -> str:
+    """tomllib's message, with the key named when it is a duplicate ("Cannot overwrite a
+    value" says only the line)."""
+    import re
+
+    message = str(exc)
+    found = re.search(r"\(at line (\d+), column (\d+)\)", message)
+    if found and ("overwrite" in message or "Cannot declare" in message):
+        line = text.splitlines()[int(found.group(1)) - 1] if int(found.group(1)) <= len(text.splitlines()) else ""
+        key = line.split("=", 1)[0].strip() if "=" in line else line.strip()
+        if key:
+            message += f": '{key}' is given twice (a key may appear once in a table, and a [table] header once)"
+    return message
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
@@ -352,7 +393,18 @@ def parse_override(text: str) -> tuple[list[str], Any]:
         value = tomllib.loads(f"v = {value_text.strip()}")["v"]
     except tomllib.TOMLDecodeError:
         value = value_text.strip()
+    except RecursionError:
+        raise ScenarioError(f"--set {key}=...: the value is nested too deeply to read") from None
+    _check_depth(value, f"--set {key}")
     return key.split("."), value
+
+
+def _list_index(part: str) -> int:
+    """An index into a [[table]] array as --set writes it: 0, 1, ... (Python's negative
+    indices, '-1' for the last, would make 'walls.-1' and 'fill.5' mean different things)."""
+    if not part.isdecimal():
+        raise ValueError(part)
+    return int(part)
 
 
 def apply_overrides(data: dict, overrides: list[str]) -> dict:
@@ -363,7 +415,7 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
         for depth, part in enumerate(path[:-1]):
             if isinstance(node, list):
                 try:
-                    node = node[int(part)]
+                    node = node[_list_index(part)]
                 except (ValueError, IndexError):
                     raise ScenarioError(f"--set {text!r}: '{'.'.join(path[:depth + 1])}' is not a valid "
                                         f"index (the list has {len(node)} entries)") from None
@@ -373,9 +425,10 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
                 raise ScenarioError(f"--set {text!r}: '{'.'.join(path[:depth + 1])}' is a value, not a table")
         if isinstance(node, list):
             try:
-                node[int(path[-1])] = value
+                node[_list_index(path[-1])] = value
             except (ValueError, IndexError):
-                raise ScenarioError(f"--set {text!r}: bad list index {path[-1]!r}") from None
+                raise ScenarioError(f"--set {text!r}: bad list index {path[-1]!r} (the list has {len(node)} "
+                                    f"entries, 0 to {len(node) - 1})") from None
         else:
             node[path[-1]] = value
     return data
@@ -395,6 +448,12 @@ class _Errors:
     def has(self, where: str) -> bool:
         """Whether a message about the key ``where`` was already added."""
         return any(m.startswith(f"{where}: ") for m in self.messages)
+
+    def has_under(self, where: str) -> bool:
+        """Whether a message about ``where`` or any of its keys was already added: a table
+        with a bad value is not used further (its other values would be combined with
+        the None the bad one was dropped to)."""
+        return any(m.startswith((f"{where}: ", f"{where}.", f"{where}[")) for m in self.messages)
 
     def raise_if_any(self) -> None:
         if self.messages:
@@ -422,8 +481,8 @@ def _check_value(key: Key, value: Any, where: str, errors: _Errors) -> Any:
         unit = f" {key.unit}" if key.unit not in ("", "-") else ""
         if key.low is not None and (value < key.low or (key.low_open and value == key.low)):
             errors.add(where, f"must be {'>' if key.low_open else '>='} {key.low:g}{unit}, got {value:g}")
-        if key.high is not None and value > key.high:
-            errors.add(where, f"must be <= {key.high:g}{unit}, got {value:g}")
+        if key.high is not None and (value > key.high or (key.high_open and value == key.high)):
+            errors.add(where, f"must be {'<' if key.high_open else '<='} {key.high:g}{unit}, got {value:g}")
         return value
     if key.kind == "int":
         if isinstance(value, bool) or not isinstance(value, int):
@@ -614,7 +673,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
                          wall_material, cylinders, meshes, index, plane_origin)
             continue
         normal = values.get("normal")
-        if normal is None and kind == "plane":
+        if normal is None and kind == "plane" and not errors.has(f"{where}.normal"):
             errors.add(f"{where}.normal", "missing required key for a plane (normal pointing to the spheres)")
         if isinstance(normal, np.ndarray):
             length = float(np.linalg.norm(normal))
@@ -648,10 +707,11 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         wall = values.get("wall")
         _impact_velocity(data["impact"], values, errors)
         if isinstance(wall, int) and not 0 <= wall < len(wall_normal):
-            errors.add("impact.wall", f"wall index {wall} does not exist: the scenario has "
-                       f"{len(wall_normal)} valid wall(s) (an [[walls]] plane is needed)")
+            if not errors.has_under("walls"):  # a bad [[walls]] table is reported already
+                errors.add("impact.wall", f"wall index {wall} does not exist: the scenario has "
+                           f"{len(wall_normal)} valid wall(s) (an [[walls]] plane is needed)")
         elif all(isinstance(values.get(k), float) for k in ("radius", "speed", "angle_deg", "spin", "gap")):
-            if values["angle_deg"] >= 90.0:
+            if values["angle_deg"] >= 90.0 and not errors.has("impact.angle_deg"):
                 errors.add("impact.angle_deg", "must be < 90 deg (90 is parallel to the wall: no impact)")
             normal = wall_normal[wall]
             tangent = _tangent(normal, values.get("tangent"), errors)
@@ -740,6 +800,9 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         # cost steps and place the first touch only to within a step. Touching at
         # t = 0 it is velocity Verlet, bit for bit.
         scene.integrator = "analytic_flight" if scene.one_sphere_among_planes else "velocity_verlet"
+    from minidem.scene import derived
+
+    derived.check_scene(scene)  # masses, inertias, energies: what the values imply
     _check_geometry(scene)
     return scene
 
@@ -759,6 +822,8 @@ def _shaped_wall(kind, values, where, source, errors, material_of, wall_point, w
     from minidem.geometry import walls as wall_shapes
 
     material = material_of(values.get("material"), f"{where}.material")
+    if errors.has_under(where):
+        return
     if kind == "box":
         if _required(values, ("lower", "upper"), "a box", where, errors):
             if np.any(values["upper"] <= values["lower"]):
@@ -806,6 +871,8 @@ def _fill(table, where, source, errors, material_of, position, velocity, spin, r
     kind = values.get("kind")
     _check_kind_keys(table, "fill", kind, where, errors)
     material = material_of(values.get("material"), f"{where}.material")
+    if errors.has_under(where):
+        return
     try:
         if kind == "lattice" and _required(values, ("radius", "lower", "upper", "spacing"), "a lattice", where, errors):
             if values["spacing"] < 2.0 * values["radius"] + 2.0 * values["jitter"]:

@@ -212,7 +212,10 @@ class DaskCluster:
                            self.MAX_ATTEMPTS)
 
     def close(self):
-        self.client.close()
+        try:  # bounded: after a lost scheduler a plain close() waits for it to come back
+            self.client.close(timeout=10)
+        except Exception:  # noqa: BLE001 - nothing left to close cleanly
+            pass
 
 
 def collect(client, function, batches_of_tasks, groups, max_attempts: int) -> Iterator[tuple[int, Any]]:
@@ -243,28 +246,75 @@ def collect(client, function, batches_of_tasks, groups, max_attempts: int) -> It
         return []
 
     try:
-        for future in pending:
-            index = futures.pop(future)
-            status = future.status
-            if status == "finished":
-                try:
-                    results = future.result()
-                except Exception as exc:  # noqa: BLE001 - its data went with its worker
-                    future.release()
-                    yield from again(index, f"result lost: {type(exc).__name__}: {exc}")
-                    continue
-                yield from zip(groups[index], results)
-            elif status == "error":
-                exc = future.exception()
-                yield from ((p, Lost(f"{type(exc).__name__}: {exc}")) for p in groups[index])
-            else:  # "lost" / "pending": finished on a worker that died; start it again
-                future.release()
-                yield from again(index, f"result lost with its worker (status {status})")
-                continue
-            future.release()
+        yield from _collect(client, pending, futures, groups, again)
+    except BackendFailure:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a client call after the scheduler went away
+        if client.status == "running":
+            raise
+        raise _scheduler_lost(client, f"{type(exc).__name__}: {exc}", pending.count()) from None
     finally:
-        if futures:  # interrupted: cancel what nobody will wait for
-            client.cancel(list(futures))
+        if futures and client.status == "running":  # interrupted: cancel what nobody will wait for
+            try:
+                client.cancel(list(futures))
+            except Exception:  # noqa: BLE001 - the scheduler went away meanwhile: nothing to cancel
+                pass
+
+
+def _collect(client, pending, futures, groups, again):
+    """The loop of :func:`collect`: ``(position, result)`` of each batch as it comes."""
+    for future in _while_scheduler_answers(client, pending):
+        index = futures.pop(future)
+        status = future.status
+        if status == "finished":
+            try:
+                results = future.result()
+            except Exception as exc:  # noqa: BLE001 - its data went with its worker
+                future.release()
+                yield from again(index, f"result lost: {type(exc).__name__}: {exc}")
+                continue
+            yield from zip(groups[index], results)
+        elif status == "error":
+            exc = future.exception()
+            yield from ((p, Lost(f"{type(exc).__name__}: {exc}")) for p in groups[index])
+        else:  # "lost" / "pending": finished on a worker that died; start it again
+            future.release()
+            yield from again(index, f"result lost with its worker (status {status})")
+            continue
+        future.release()
+
+
+# A scheduler the client cannot reach for this long is lost: the sweep stops (exit 1,
+# the finished cases kept in the journal) instead of waiting for it forever. distributed
+# itself retries the connection for ~30 s (distributed.comm.timeouts.connect) and then
+# leaves the client "connecting" with futures that never complete.
+SCHEDULER_LOST_S = 30.0
+
+
+def _while_scheduler_answers(client, pending, poll_s: float = 0.2):
+    """The futures of ``pending`` (an as_completed) as they finish, as long as the client
+    is connected to its scheduler; BackendFailure once it has not been for SCHEDULER_LOST_S."""
+    unreachable_since = None
+    while not pending.is_empty():
+        if pending.has_ready():
+            for future in pending.next_batch(block=False):
+                yield future
+            continue
+        if client.status == "running":
+            unreachable_since = None
+        else:
+            unreachable_since = unreachable_since or time.monotonic()
+            if client.status in ("closed", "closing") or time.monotonic() - unreachable_since > SCHEDULER_LOST_S:
+                raise _scheduler_lost(client, f"disconnected for {time.monotonic() - unreachable_since:.0f} s",
+                                      pending.count())
+        time.sleep(poll_s)
+
+
+def _scheduler_lost(client, detail: str, batches_left: int) -> BackendFailure:
+    address = getattr(getattr(client, "scheduler", None), "address", None) or "(unknown address)"
+    return BackendFailure(f"lost the Dask scheduler {address} (client status '{client.status}': {detail}); "
+                          f"{batches_left} batch(es) of cases did not come back. Restart the scheduler and run the "
+                          "same command again: the finished cases are kept in the journal")
 
 
 def from_options(scheduler: str | None, workers: int) -> Executor:

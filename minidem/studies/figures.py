@@ -56,9 +56,18 @@ def _finish(fig, ax, sweep, path, xlabel, ylabel):
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    # rendered in memory, then written atomically as every result is (minidem.files):
+    # a full disk or a kill never leaves a truncated PNG under the final name
+    import io
+
+    from minidem.files import atomic_write
+
+    buffer = io.BytesIO()
+    try:
+        fig.savefig(buffer, dpi=120, format="png")
+    finally:
+        plt.close(fig)
+    return atomic_write(path, buffer.getvalue())
 
 
 def rigid_body_y1(x, mu):

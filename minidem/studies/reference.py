@@ -47,6 +47,11 @@ choices" once written, which the engine follows):
   eq 19 stops holding (default), 1-3 and 5 at an event where the reading's end condition
   (``_Law.special_margin``) reaches zero, 4 where the displacement deficit D reaches zero
   (docs/laws.md "HMD implementation choices", item 9);
+- HMD's branch reversal (issue 13, ``Impact.partial_slip_reversal_check``, as the engine's
+  parameter): the branch of direction D (+1 load/reload, -1 unload) reverses where D vs
+  turns negative, except in partial slip (no special state) while Fn falls, where it
+  reverses only once the new elastic branch is admissible: h = 8 G* a D vs - mu Fn'
+  (divided by 2 E* a: kappa D v - mu u) crossing zero downwards; with 0, at D vs = 0;
 - a full reversal at Ft = -Ft* needs Ft* > 0 (eq 23 drives Ft* below zero once Fn has
   fallen enough, and -Ft* is then no point of the mirrored curve; the engine's guard):
   it happens where the state enters {Ft <= -Ft*, Ft* > 0}, located by the continuous
@@ -86,6 +91,9 @@ class Impact:
     stiffness_ratio: float | None = None  # LS only: kappa = kt/kn; default eq 10
     normal_stiffness: float | None = None  # LS only: kn; default eq 28
     special_case: int = 0  # HMD only: reading of eq 24, as the engine's hmd parameter
+    # HMD only, as the engine's hmd parameter: 1 a reversal in partial slip while Fn falls
+    # waits until it is admissible (issue 13), 0 at the velocity reversal
+    partial_slip_reversal_check: int = 1
 
     @property
     def mass(self) -> float:
@@ -173,6 +181,10 @@ class _Law:
         self.special_case = impact.special_case
         if self.special_case not in range(6):
             raise ValueError(f"reference: special_case must be 0..5, got {self.special_case!r}")
+        self.admissible_reversal = impact.partial_slip_reversal_check
+        if self.admissible_reversal not in (0, 1):
+            raise ValueError("reference: partial_slip_reversal_check must be 0 or 1, "
+                             f"got {self.admissible_reversal!r}")
         self.spin_factor = self.R**2 * self.m / (0.4 * self.m * self.R**2)  # m R^2 / I = 5/2
         e_star, g_star = impact.effective_modulus, impact.effective_shear_modulus
         self.linear = self.name == "ls"
@@ -322,8 +334,17 @@ class _Law:
                 out.append((-rate_gap, "special"))
             if special == SPECIAL_LATCHED:
                 out.append((self.special_margin(mode, y, fn), "special_end"))
+            # where the branch reverses: the surface velocity against the branch
+            # direction, D v < 0; in partial slip while Fn falls (issue 13) only once the
+            # reversed elastic branch is admissible, h = 8 G* a D vt - mu Fn' < 0 (divided
+            # by 2 E* a: kappa D v - mu u). Both are positive inside the branch and change
+            # sign together at u = 0 (the max_overlap event), so the event is continuous.
+            direction = -1.0 if kind == "unload" else 1.0
+            reversal = direction * v
+            if self.admissible_reversal and special == SPECIAL_OFF and y[U] < 0.0:
+                reversal = self.kappa * direction * v - self.mu * y[U]
             if kind == "load":
-                out.append((v, "unload"))
+                out.append((reversal, "unload"))
             elif kind == "unload":
                 # full reversal where the state enters {f <= -Ft*, Ft* > 0} (a reversal
                 # point: eq 23 drives Ft* below zero once Fn has fallen enough, and -Ft*
@@ -335,9 +356,9 @@ class _Law:
                 # missed: et 0.845 instead of 0.750 at mu = 1, 1 deg. With fast eq 23
                 # the set can be crossed within one step, so no single function of the
                 # end points can locate it.)
-                out += [(-v, "reload"), (f + y[F1], "reverse"), (-y[F1], "reverse_point_positive")]
+                out += [(reversal, "reload"), (f + y[F1], "reverse"), (-y[F1], "reverse_point_positive")]
             else:
-                out += [(v, "unload"), (y[F1] - f, "load")]
+                out += [(reversal, "unload"), (y[F1] - f, "load")]
         return out
 
     def special_margin(self, mode, y, fn):

@@ -127,6 +127,9 @@ def plan(data: dict, source: str) -> SweepPlan:
     values = scenario._check_table(data["sweep"], keys_declared, "sweep", errors)
     errors.raise_if_any()
     cases_table = values["cases"]
+    if not cases_table:
+        errors.add("sweep.cases", 'is empty: give at least one key and its values, e.g. {"impact.angle_deg" = '
+                   "[1.0, 5.0]} (a single run needs no [sweep] table)")
     keys, columns = [], []
     for key, options in cases_table.items():
         where = f'sweep.cases."{key}"'
@@ -139,9 +142,26 @@ def plan(data: dict, source: str) -> SweepPlan:
         keys.append(key)
         columns.append(options)
     axes, grouped = _axes(keys, columns, values["together"], values["abscissa"], errors)
-    unknown = [f for f in values["figures"] if f not in FIGURES]
+    unknown = [f for f in values["figures"] if not isinstance(f, str) or f not in FIGURES]
     if unknown:
         errors.add("sweep.figures", f"unknown figure(s) {unknown}; valid: {', '.join(FIGURES)}")
+    # a figure that cannot be drawn is refused now, not skipped silently after the run
+    for traced in ("force_displacement", "force_time"):
+        if traced in values["figures"] and not values["keep_traces"]:
+            errors.add("sweep.figures", f'"{traced}" plots the cases\' traces: it needs sweep.keep_traces = true')
+    paper = [f for f in values["figures"] if f in ("y1", "y2", "et", "force_displacement")]
+    no_impact = "impact" not in data and not any(str(k).split(".")[0] == "impact" for k in cases_table)
+    if paper and no_impact and "figures" not in data["sweep"]:
+        values["figures"] = []  # the default figures are an impact's: a scene sweep draws none
+    elif paper and no_impact:
+        errors.add("sweep.figures", f"{paper} are the rebound measures of an [impact] scene, which this "
+                   'scenario has none of; give figures = [] (sweep.csv is written anyway)')
+    labels = values.get("series_labels")
+    if labels is not None and not all(isinstance(label, str) for label in labels):
+        errors.add("sweep.series_labels", f"expected a list of strings, got {labels!r}")
+    figures = values["figures"]
+    if not all(isinstance(f, str) for f in figures):
+        errors.add("sweep.figures", f"expected a list of figure names (strings), got {figures!r}")
     if values["workers"] < 0:
         errors.add("sweep.workers", f"must be >= 0 (0: one per CPU), got {values['workers']}")
     errors.raise_if_any()
@@ -158,12 +178,17 @@ def plan(data: dict, source: str) -> SweepPlan:
         errors.add("sweep.series_labels", f"expected {len(sweep.series())} labels (one per combination of "
                    f"{', '.join(sweep.series_keys) or 'nothing'}), got {len(sweep.series_labels)}")
     # every case must be a valid scenario before anything runs: bad input is exit 2
+    from minidem import laws
+    from minidem.engine import simulation
+
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         for index in range(len(cases)):
             try:
-                scenario.build_scene(scenario.apply_overrides(base, sweep.overrides(index)), source)
-            except ScenarioError as exc:
+                scene = scenario.build_scene(scenario.apply_overrides(base, sweep.overrides(index)), source)
+                # what the values imply (constants, time step, steps), without compiling
+                simulation.Simulation(scene, compile=False)
+            except (ScenarioError, laws.LawError) as exc:
                 setting = ", ".join(f"{k} = {_toml_value(v)}" for k, v in zip(keys, cases[index]))
                 errors.add(f"sweep case {index} ({setting})", str(exc).replace(f"{source}: ", "", 1))
                 break
@@ -371,10 +396,17 @@ class Journal:
         self.synced = wallclock.monotonic()
 
     def append(self, row: dict) -> None:
-        self.handle.write((json.dumps(row, default=_plain) + "\n").encode())
-        if wallclock.monotonic() - self.synced > 1.0:
-            os.fsync(self.handle.fileno())
-            self.synced = wallclock.monotonic()
+        from minidem.files import output_error
+
+        line = (json.dumps(row, default=_plain) + "\n").encode()
+        try:
+            self.handle.write(line)
+            if wallclock.monotonic() - self.synced > 1.0:
+                os.fsync(self.handle.fileno())
+                self.synced = wallclock.monotonic()
+        except OSError as exc:
+            # a torn last line is cut on resume: the rows before it are kept
+            raise output_error(self.path, exc) from exc
 
     def close(self) -> None:
         if self.handle is not None:
@@ -635,6 +667,9 @@ def command(args, data: dict) -> int:
             print(f"  case {r['case']} failed: {r['error']}")
         for line in _energy_gain_notes(rows):
             print(f"  warning: {line}")
+    else:  # --quiet keeps the warnings (docs/cli.md), on standard error
+        for line in _energy_gain_notes(rows):
+            print(f"minidem: warning: {line}", file=sys.stderr)
     if failed:
         print(f"minidem: {len(failed)} of {len(rows)} sweep case(s) failed (status and error columns of "
               f"{directory / 'sweep.csv'}); the other cases ran", file=sys.stderr)
