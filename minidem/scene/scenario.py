@@ -419,8 +419,10 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
                 except (ValueError, IndexError):
                     raise ScenarioError(f"--set {text!r}: '{'.'.join(path[:depth + 1])}' is not a valid "
                                         f"index (the list has {len(node)} entries)") from None
-                continue
-            node = node.setdefault(part, {})
+            else:
+                node = node.setdefault(part, {})
+            # a list entry or a table's key may hold a value where the path needs a table
+            # (a sweep over particles.1.material of a file whose particles[1] is a number)
             if not isinstance(node, (dict, list)):
                 raise ScenarioError(f"--set {text!r}: '{'.'.join(path[:depth + 1])}' is a value, not a table")
         if isinstance(node, list):
