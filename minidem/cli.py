@@ -181,7 +181,7 @@ class _progress_bar:
 
 
 def command_laws(args) -> int:
-    from minidem import laws
+    from minidem.contact import laws
 
     registry = laws.registry()
     if args.json:
@@ -193,10 +193,20 @@ def command_laws(args) -> int:
                 "parameters": [{"name": p.name, "default": p.default, "unit": p.unit, "bounds": p.bounds_text(),
                                 "required": p.required, "description": p.description} for p in e.law.parameters],
             } for e in registry.entries()],
+            "presets": [{"name": p.name, "description": p.description, "parts": dict(p.parts),
+                         "parameters": dict(p.parameters), "aliases": list(p.aliases)} for p in registry.presets()],
+            "parts": [{
+                "name": part.name, "kind": part.kind, "package": registry.part_origin(part.name)[1],
+                "description": part.description, "energy": list(part.energy), "provides": list(part.provides),
+                "requires": list(part.requires), "history_slots": part.history_size,
+                "parameters": [{"name": p.name, "default": p.default, "unit": p.unit, "bounds": p.bounds_text(),
+                                "required": p.required, "description": p.description} for p in part.parameters],
+            } for part in registry.parts()],
             "broken": [vars(b) for b in registry.broken],
         }
         print(json.dumps(payload, indent=2))
         return EXIT_OK
+    print("Laws (law = NAME):")
     for e in registry.entries():
         aliases = f" (aliases: {', '.join(e.law.aliases)})" if e.law.aliases else ""
         print(f"{e.law.name}{aliases}  [{e.distribution} {e.version}, plugin '{e.plugin}']")
@@ -205,6 +215,23 @@ def command_laws(args) -> int:
             default = "required" if p.required else ("derived" if p.default is None else f"{p.default:g}")
             print(f"    - {p.name:<22} {default:>9} {p.unit:<5} {p.bounds_text():<14} {p.description}")
         print(f"    history: {e.law.history_size} slot(s) per contact")
+    for preset in registry.presets():
+        print(f"{preset.name}  [preset: {' + '.join(preset.parts.values())}]")
+        print(f"    {preset.description}")
+        for name, value in preset.parameters.items():
+            print(f"    - {name:<22} {value:>9g}")
+    print("\nParts (combine one of each kind: [contact] normal = ..., damping = ..., tangential = ...):")
+    for kind in laws.KINDS:
+        print(f"{kind}:")
+        for part in registry.parts(kind):
+            plugin, dist, version = registry.part_origin(part.name)
+            needs = f"; requires {', '.join(part.requires)}" if part.requires else ""
+            gives = f"; provides {', '.join(part.provides)}" if part.provides else ""
+            print(f"  {part.name}  [{dist} {version}, plugin '{plugin}'; energy: {', '.join(part.energy)}{gives}{needs}]")
+            print(f"      {part.description}")
+            for p in part.parameters:
+                default = "required" if p.required else ("derived" if p.default is None else f"{p.default:g}")
+                print(f"      - {p.name:<20} {default:>9} {p.unit:<5} {p.bounds_text():<14} {p.description}")
     for b in registry.broken:
         print(f"BROKEN plugin '{b.plugin}'" + (f" law '{b.law}'" if b.law else "") + f": {b.reason}")
     return EXIT_OK
@@ -329,7 +356,7 @@ class _PipeClosedSink:
 
 
 def main(argv=None) -> int:
-    from minidem.laws import LawError
+    from minidem.contact.laws import LawError
     from minidem.files import OutputError
     from minidem.scene.scenario import ScenarioError
     from minidem.engine.simulation import RunFailure

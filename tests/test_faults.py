@@ -376,7 +376,7 @@ import math
 import numba
 
 from minidem import hookimpl
-from minidem.laws import ContactLaw, HistorySlot, Parameter
+from minidem.contact import ContactLaw, HistorySlot, Parameter
 
 
 def prepare(pair, params):
@@ -461,7 +461,7 @@ import math
 import numba
 
 from minidem import hookimpl
-from minidem.laws import ContactLaw, Parameter
+from minidem.contact import ContactLaw, Parameter
 from minidem_scaled.helpers.factor import stiffness_factor
 
 

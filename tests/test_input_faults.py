@@ -475,7 +475,7 @@ PLUGINS = {
     "exits": "import sys\nsys.exit(3)\n",  # the example
     "exits_with_text": "raise SystemExit('plugin says goodbye')\n",  # new
     "generator_exit": "raise GeneratorExit('stray')\n",  # new: another BaseException
-    "exits_in_hook": ("import sys\nfrom minidem.hookspecs import hookimpl\n\n@hookimpl\n"
+    "exits_in_hook": ("import sys\nfrom minidem import hookimpl\n\n@hookimpl\n"
                       "def minidem_register_laws(registry):\n    sys.exit(4)\n"),  # new: in the hook
 }
 
@@ -511,7 +511,7 @@ def test_a_prepare_that_exits_is_a_law_error(monkeypatch):
     import dataclasses
     import types
 
-    from minidem import laws
+    from minidem.contact import laws
 
     def prepare(pair, params):
         sys.exit(5)
@@ -588,7 +588,7 @@ def test_a_slow_prepare_says_what_is_being_prepared(monkeypatch):
     import dataclasses
     import types
 
-    from minidem import laws
+    from minidem.contact import laws
 
     base = laws.registry().get("ls")
 

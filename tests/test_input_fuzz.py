@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from minidem import laws
+from minidem.contact import laws
 from minidem.engine import simulation
 from minidem.scene import scenario
 from minidem.studies import sweep

@@ -23,7 +23,7 @@ import pytest
 
 import minidem
 from conftest import OBLIQUE, run_cli
-from minidem import laws
+from minidem.contact import laws
 from minidem.results import analysis
 from minidem.scene import scenario
 from minidem.engine import simulation
@@ -34,7 +34,7 @@ import math
 import numba
 
 from minidem import hookimpl
-from minidem.laws import ContactLaw, Parameter
+from minidem.contact import ContactLaw, Parameter
 
 
 @numba.njit(cache=True)
@@ -228,7 +228,7 @@ def assert_builtin_laws_run(registry):
 # --------------------------------------------------------------------------------------
 def test_builtin_laws_come_through_minidem_entry_point():
     points = {ep.name: ep for ep in importlib.metadata.entry_points(group="minidem")}
-    assert points["builtin"].value == "minidem.builtin_laws"
+    assert points["builtin"].value == "minidem.contact.builtin_laws"
     registry = laws.load_registry()
     for name in ("hmd", "ls", "hm", "lth", "hmdns_integral", "hmdns_integral_reset"):
         entry = registry.entry(name)
@@ -258,8 +258,8 @@ def test_bad_declarations_are_reported_one_by_one(fake_site):
     assert "already taken by plugin 'builtin' (minidem)" in broken["hmd"].reason
     assert "default of parameter 'stiffness'" in broken["fake_bad_default"].reason
     assert "must be > 0" in broken["fake_bad_default"].reason
-    assert "tuple of minidem.laws.Parameter" in broken["fake_list_parameters"].reason
-    assert "expects a minidem.laws.ContactLaw, got dict" in broken[None].reason
+    assert "tuple of minidem.contact.Parameter" in broken["fake_list_parameters"].reason
+    assert "expects a minidem.contact.ContactLaw (or ContactPart, Preset), got dict" in broken[None].reason
     assert all(b.plugin == "fake_bad_laws" for b in registry.broken)
     # the good law after the bad ones is kept, the built-in hmd is not displaced
     assert registry.entry("fake_survivor").plugin == "fake_bad_laws"

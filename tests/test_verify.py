@@ -48,8 +48,8 @@ OVERRUN_PLUGIN = '''
 import numba
 
 from minidem import hookimpl
-from minidem.builtin_laws.common import incremental_spring
-from minidem.laws import ContactLaw, HistorySlot, Parameter
+from minidem.contact.builtin_laws.common import incremental_spring
+from minidem.contact.laws import ContactLaw, HistorySlot, Parameter
 
 
 @numba.njit
@@ -79,7 +79,7 @@ def test_a_force_writing_past_its_declared_history_is_caught(tmp_path, monkeypat
     contact's history silently (a plugin author's mistake found in review)."""
     import importlib
 
-    from minidem import laws
+    from minidem.contact import laws
 
     (tmp_path / "fake_overrun_plugin.py").write_text(OVERRUN_PLUGIN)
     monkeypatch.syspath_prepend(str(tmp_path))

@@ -9,6 +9,8 @@ Scene shape flags ("model only what a scene needs": a branch on a False flag is
 removed by the compiler, so a single impact pays nothing for pairs or meshes):
 
     SPIN       angular velocities and torques (the law can produce tangential forces)
+    COUPLES    the law also takes the relative spin and returns a couple (rolling or
+               twisting resistance): applied to i, its opposite to j
     PAIRS      sphere-sphere contacts through the Verlet list (more than one particle)
     CYLINDERS  finite cylinder walls
     MESHES     triangle-mesh walls
@@ -66,9 +68,10 @@ from minidem.geometry.primitives import (
 from minidem.engine.integrate import drift, kick
 
 # >>> specialisation block (rewritten by minidem.engine.simulation.compile_kernel)
-from minidem.builtin_laws.linear import linear_force as law_force  # noqa: E402
+from minidem.contact.builtin_laws.linear import linear_force as law_force  # noqa: E402
 
 SPIN = True
+COUPLES = False
 PAIRS = True
 CYLINDERS = True
 MESHES = True
@@ -168,7 +171,8 @@ def evaluate_contact(acc, constants_row, history, overlap, previous, normal, cur
 
     A wall is a partner that does not move (v_j = w_j = 0, lever_j = 0); its lever arm
     lever_i is the undeformed radius, as in the paper's rigid-body analysis (eqs 3-8).
-    Returns (acc, (force on i), (n x ft), fn, ft, displacement increment, finite); the
+    Returns (acc, (force on i), (n x ft), (couple on i), fn, ft, displacement increment,
+    finite); the
     caller reports a non-finite force as a fault. The status array is not an argument:
     numba increments and decrements the reference count of an array passed to an
     inlined function that uses it in a branch, on every call: two atomic adds per
@@ -182,10 +186,19 @@ def evaluate_contact(acc, constants_row, history, overlap, previous, normal, cur
         vi[0], vi[1], vi[2], wi[0], wi[1], wi[2], vj[0], vj[1], vj[2], wj[0], wj[1], wj[2], lever_i, lever_j,
         nx, ny, nz)
     increment = (tangential_velocity[0] * dt, tangential_velocity[1] * dt, tangential_velocity[2] * dt)
-    fn, ftx, fty, ftz = law_force(constants_row, effective_radius, effective_mass, overlap,
-                                  overlap - max(previous, 0.0), normal_velocity, increment, tangential_velocity,
-                                  history)
-    ok = finite(fn, ftx, fty, ftz)
+    mx, my, mz = 0.0, 0.0, 0.0
+    if COUPLES:
+        # rolling and twisting resistance: the law sees the spin of i relative to j and
+        # returns a pure couple on i (j gets its opposite: no moment of a force to balance)
+        fn, ftx, fty, ftz, mx, my, mz = law_force(
+            constants_row, effective_radius, effective_mass, overlap, overlap - max(previous, 0.0), normal_velocity,
+            increment, tangential_velocity, history, (wi[0] - wj[0], wi[1] - wj[1], wi[2] - wj[2]), normal, dt)
+        ok = finite(fn, ftx, fty, ftz) and finite(mx, my, mz, 0.0)
+    else:
+        fn, ftx, fty, ftz = law_force(constants_row, effective_radius, effective_mass, overlap,
+                                      overlap - max(previous, 0.0), normal_velocity, increment, tangential_velocity,
+                                      history)
+        ok = finite(fn, ftx, fty, ftz)
     fx, fy, fz, tx, ty, tz, count = acc
     ex, ey, ez = fn * nx - ftx, fn * ny - fty, fn * nz - ftz
     cx, cy, cz = 0.0, 0.0, 0.0
@@ -193,8 +206,12 @@ def evaluate_contact(acc, constants_row, history, overlap, previous, normal, cur
         cx, cy, cz = cross(nx, ny, nz, ftx, fty, ftz)
     if TRACK and ok:
         note_peaks(stats, overlap, fn, ftx, fty, ftz)
-    acc = (fx + ex, fy + ey, fz + ez, tx + lever_i * cx, ty + lever_i * cy, tz + lever_i * cz, count + 1)
-    return acc, (ex, ey, ez), (cx, cy, cz), fn, (ftx, fty, ftz), increment, ok
+    if COUPLES:
+        acc = (fx + ex, fy + ey, fz + ez, tx + lever_i * cx + mx, ty + lever_i * cy + my, tz + lever_i * cz + mz,
+               count + 1)
+    else:
+        acc = (fx + ex, fy + ey, fz + ez, tx + lever_i * cx, ty + lever_i * cy, tz + lever_i * cz, count + 1)
+    return acc, (ex, ey, ez), (cx, cy, cz), (mx, my, mz), fn, (ftx, fty, ftz), increment, ok
 
 
 @numba.njit(cache=True, inline="always")
@@ -297,7 +314,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
             if overlap >= ri:
                 fault(status, TUNNELLED, i, w, PLANE)
                 break
-            acc, _, _, fn, ft, increment, ok = evaluate_contact(
+            acc, _, _, _, fn, ft, increment, ok = evaluate_contact(
                 acc, constants[pair_row[mat, wall_material[w]]], wall_history[i, w], overlap, previous,
                 (wall_normal[w, 0], wall_normal[w, 1], wall_normal[w, 2]), False, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi,
                 dt, stats)
@@ -329,7 +346,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                         fault(status, TUNNELLED, i, c, CYLINDER)
                         break
                     continue
-                acc, _, _, _, _, _, ok = evaluate_contact(
+                acc, _, _, _, _, _, _, ok = evaluate_contact(
                     acc, constants[pair_row[mat, cylinder_material[c]]], cylinder_history[i, c], overlap, previous,
                     (nx, ny, nz), True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)
                 if not ok:
@@ -390,7 +407,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                     if overlap >= ri:
                         fault(status, TUNNELLED, i, t, TRIANGLE)
                         break
-                    acc, _, _, _, _, _, ok = evaluate_contact(
+                    acc, _, _, _, _, _, _, ok = evaluate_contact(
                         acc, constants[pair_row[mat, triangle_material[t]]], mesh_history[k], overlap, previous,
                         (nx, ny, nz), True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)
                     if not ok:
@@ -457,7 +474,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                     wj = (angular_velocity[j, 0], angular_velocity[j, 1], angular_velocity[j, 2])
                 mj = mass[j]
                 lever_j = rj - 0.5 * overlap
-                acc, on_i, direction, _, _, _, ok = evaluate_contact(
+                acc, on_i, direction, couple, _, _, _, ok = evaluate_contact(
                     acc, constants[pair_row[mat, material[j]]], pair_history[e], overlap, previous,
                     (dx * inverse, dy * inverse, dz * inverse), True,
                     vi, wi, (velocity[j, 0], velocity[j, 1], velocity[j, 2]), wj,
@@ -466,10 +483,15 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                     fault(status, NON_FINITE_FORCE, i, j, PARTICLE)
                     break
                 # j's share, added by finish_range: the force on i (j gets its opposite) and the
-                # torque on j, R_j' (n x ft), at the slot of the entry in j's reverse row
+                # torque on j, R_j' (n x ft) minus the couple on i, at the slot of the entry
+                # in j's reverse row
                 r = reaction_slot[e]
                 reaction[r, 0], reaction[r, 1], reaction[r, 2] = on_i
-                if SPIN:
+                if COUPLES:
+                    reaction[r, 3] = lever_j * direction[0] - couple[0]
+                    reaction[r, 4] = lever_j * direction[1] - couple[1]
+                    reaction[r, 5] = lever_j * direction[2] - couple[2]
+                elif SPIN:
                     reaction[r, 3] = lever_j * direction[0]
                     reaction[r, 4] = lever_j * direction[1]
                     reaction[r, 5] = lever_j * direction[2]

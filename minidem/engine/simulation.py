@@ -17,6 +17,7 @@ import hashlib
 import importlib.util
 import math
 import os
+import re
 import inspect
 import signal
 import sys
@@ -27,7 +28,8 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from minidem import __version__, laws
+from minidem import __version__
+from minidem.contact import laws
 from minidem.engine import integrate, kernel
 from minidem.geometry import neighbours, primitives
 from minidem.scene import derived
@@ -155,7 +157,7 @@ _STABLE_PACKAGES = {"numpy", "numba", "math", "cmath", "builtins", "llvmlite"}
 def _force_dependencies(force) -> tuple[str, tuple]:
     """Hash of the source of the law's force function and of everything it calls, followed
     transitively through jitted and plain functions, closures and modules of any package
-    (a helper in a subpackage, minidem.builtin_laws.common, another distribution), with
+    (a helper in a subpackage, minidem.contact.builtin_laws.common, another distribution), with
     the module-level constants they read (numba freezes those into the machine code);
     and the numba dispatchers met on the way. Read once per process per law, like the
     engine's sources (_engine_hash).
@@ -239,15 +241,18 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
     integrator (compiled lazily, cached on disk). Integrators with the same kick split
     (velocity Verlet and analytic flight) share one kernel."""
     flags = dict(zip(KERNEL_FLAGS, (bool(spin), bool(pairs), bool(cylinders), bool(meshes), bool(parallel))))
-    flags["OPENING_KICK"] = integrate.OPENING_KICK[integrator]
     law = entry.law
+    # a law with rolling or twisting parts takes the relative spin and returns a couple
+    flags["COUPLES"] = bool(law.couples)
+    flags["OPENING_KICK"] = integrate.OPENING_KICK[integrator]
     force_module, force_name = laws.force_import_name(law)
     law_hash, law_dispatchers = _force_dependencies(law.force)
     key = hashlib.sha256(
         f"{_engine_hash()}|{law_hash}|{entry.distribution}|{entry.version}|{force_module}."
         f"{force_name}|{flags}|{law.vector_history_offsets}|{numba.__version__}|{__version__}".encode()
     ).hexdigest()[:16]
-    module_name = f"minidem_kernel_{law.name}_{key}"
+    # a combination's name joins its parts with '+': a module name takes identifiers only
+    module_name = f"minidem_kernel_{re.sub(r'[^A-Za-z0-9_]', '_', law.name)}_{key}"
     if module_name in _LOADED:
         return _LOADED[module_name]
     template = _TEMPLATE.read_text()
@@ -454,7 +459,9 @@ class Simulation:
         registry = registry or laws.registry()
         self.entry = registry.entry(scene.law_name)
         self.law = self.entry.law
-        self.spin = self.law.is_frictional(scene.law_parameters)
+        # spin is needed when any material pair can carry a tangential force
+        self.spin = any(self.law.is_frictional(params)
+                        for params in (scene.law_parameters, *scene.pair_parameters.values()))
         self.pairs = scene.n_particles > 1
         self.parallel = scene.n_particles > PARALLEL_ABOVE and scene.stop != "separation"
         self.skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
@@ -517,7 +524,8 @@ class Simulation:
                     with _notice_if_slow(self.notify, f"preparing law '{law.name}' ({self.entry.distribution}) for "
                                          f"materials '{materials[a].name}'/'{materials[b].name}' (its prepare() "
                                          f"is still running)"):
-                        row, named = law.prepared_constants(pair, scene.law_parameters)
+                        row, named = law.prepared_constants(pair, scene.pair_parameters.get((a, b),
+                                                                                            scene.law_parameters))
                 except laws.LawError:
                     raise
                 except laws.PLUGIN_FAULTS as exc:  # a plugin's prepare() is user code (sys.exit too)
@@ -1175,32 +1183,66 @@ def _numba_cause(exc: Exception) -> str:
     return ("; ".join(message[:2]) or lines[0]) + where
 
 
-# the argument types the kernel passes a law's force function (minidem.laws.FORCE_ARGUMENTS)
+# the argument types the kernel passes a law's force function (minidem.contact.laws.FORCE_ARGUMENTS)
 _FORCE_SIGNATURE = (numba.types.Array(numba.types.float64, 1, "C"), *(numba.types.float64,) * 5,
                     numba.types.UniTuple(numba.types.float64, 3), numba.types.UniTuple(numba.types.float64, 3),
                     numba.types.Array(numba.types.float64, 1, "C"))
 
 
-def force_problem(law: laws.ContactLaw, exc: Exception) -> str:
-    """Why a law's force function broke the kernel's compilation: compiled alone with the
-    engine's argument types, so the message names the law's function and file (and a
-    wrong return value), not the kernel line that called it."""
-    func = law.force.py_func
+_ROW, _FLOAT, _VECTOR = (numba.types.Array(numba.types.float64, 1, "C"), numba.types.float64,
+                         numba.types.UniTuple(numba.types.float64, 3))
+# the argument types a part's function is called with (minidem.contact.laws.PART_ARGUMENTS)
+# and how many numbers it returns (0: one number)
+_PART_SIGNATURES = {
+    "normal": ((_ROW, *(_FLOAT,) * 4, _ROW), 3),
+    "damping": ((_ROW, *(_FLOAT,) * 6), 0),
+    "tangential": ((_ROW, *(_FLOAT,) * 7, _VECTOR, _VECTOR, _ROW), 3),
+    "rolling": ((_ROW, *(_FLOAT,) * 6, _VECTOR, _VECTOR, _ROW), 3),
+    "twisting": ((_ROW, *(_FLOAT,) * 8, _ROW), 0),
+}
+
+
+def _compiled_alone(function, signature, count: int, what: str, shape: str) -> str | None:
+    """Why ``function`` does not compile with ``signature`` or does not return ``count``
+    numbers (0: one number), naming its file and line; None when it is fine."""
+    func = function.py_func
     try:
         _, line = inspect.getsourcelines(func)
         where = f"{func.__qualname__} in {inspect.getsourcefile(func)}, line {line}"
     except (OSError, TypeError):
         where = func.__qualname__
     try:
-        law.force.compile(_FORCE_SIGNATURE)
+        function.compile(signature)
     except numba.core.errors.NumbaError as alone:
-        return f"its force function {where} does not compile: {_numba_cause(alone)}"
-    returned = law.force.overloads[_FORCE_SIGNATURE].signature.return_type
-    if not (isinstance(returned, numba.types.BaseTuple) and len(returned) == 4
-            and all(isinstance(t, (numba.types.Float, numba.types.Integer)) for t in returned)):
-        return (f"its force function {where} must return 4 numbers (fn, ftx, fty, ftz), "
-                f"it returns {returned}")
-    return f"its force function {where} does not compile in the engine: {_numba_cause(exc)}"
+        return f"its {what} {where} does not compile: {_numba_cause(alone)}"
+    returned = function.overloads[signature].signature.return_type
+    number = (numba.types.Float, numba.types.Integer)
+    if count == 0:
+        if not isinstance(returned, number):
+            return f"its {what} {where} must return a number ({shape}), it returns {returned}"
+    elif not (isinstance(returned, numba.types.BaseTuple) and len(returned) == count
+              and all(isinstance(t, number) for t in returned)):
+        return f"its {what} {where} must return {count} numbers ({shape}), it returns {returned}"
+    return None
+
+
+def force_problem(law: laws.ContactLaw, exc: Exception) -> str:
+    """Why a law's force function broke the kernel's compilation: compiled alone with the
+    engine's argument types (each part of a combination with its kind's), so the message
+    names the law's or the part's function and file (and a wrong return value), not the
+    kernel line that called it."""
+    shapes = {"normal": "elastic force, stiffness, contact radius", "damping": "the dashpot's force",
+              "tangential": "ftx, fty, ftz", "rolling": "the couple mx, my, mz", "twisting": "the couple about n"}
+    for part in law.parts:
+        signature, count = _PART_SIGNATURES[part.kind]
+        why = _compiled_alone(part.function, signature, count, "function", shapes[part.kind])
+        if why:
+            return f"{part.kind} part '{part.name}': {why}"
+    if not law.parts:
+        why = _compiled_alone(law.force, _FORCE_SIGNATURE, 4, "force function", "fn, ftx, fty, ftz")
+        if why:
+            return why
+    return f"its force function does not compile in the engine: {_numba_cause(exc)}"
 
 
 def run_scene(scene: Scene, progress=None) -> RunResult:

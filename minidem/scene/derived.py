@@ -144,7 +144,7 @@ def check_scene(scene) -> None:
 def arithmetic(scene, what: str):
     """Turn a float overflow or division by zero while deriving ``what`` into a refusal
     naming the inputs (numpy's warnings silenced: the results are checked after)."""
-    from minidem.laws import LawError
+    from minidem.contact.laws import LawError
 
     with np.errstate(all="ignore"):
         try:

@@ -64,9 +64,20 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
         Key("density", "float", REQUIRED, "kg/m^3", "mass density", low=0.0, low_open=True),
     ), "Materials by name: `[materials.glass]`. Walls and particles refer to them by name."),
     "contact": ("open", (
-        Key("law", "str", REQUIRED, "", "contact law name or alias (`minidem laws` lists them)"),
-    ), "The contact law and its parameters (friction included); every other key is a parameter "
-       "of the chosen law, checked against its declaration (see docs/laws.md)."),
+        Key("law", "str", None, "", "contact law, preset or alias (`minidem laws` lists them); required "
+            "unless the law is composed of parts (`normal = ...`)"),
+        Key("normal", "str", None, "", "normal part (e.g. \"hertz\", \"hooke\"): compose the law of parts "
+            "instead of naming one; with a preset `law`, replaces the preset's part"),
+        Key("damping", "str", None, "", "damping part (e.g. \"tsuji\", \"viscous\") or \"none\""),
+        Key("tangential", "str", None, "", "tangential part (e.g. \"mindlin\", \"linear_history\") or \"none\""),
+        Key("rolling", "str", None, "", "rolling-resistance part (e.g. \"epsd\", \"constant_torque\") or \"none\""),
+        Key("twisting", "str", None, "", "twisting-resistance part (e.g. \"marshall\") or \"none\""),
+        Key("pairs", "table", None, "", "per-material-pair parameter values: `[contact.pairs.\"beads/steel\"]` "
+            "friction = 0.5 (the two material names joined by '/', either order)"),
+    ), "The contact law and its parameters (friction included): a law or preset by name (`law = "
+       "\"hmd\"`) or a combination of parts (`normal = \"hertz\"`, `damping = \"tsuji\"`, `tangential = "
+       "\"mindlin\"`). Every other key is a parameter of the law or of one of its parts, checked against "
+       "its declaration (see docs/laws.md)."),
     "walls": ("array", (
         Key("type", "choice", "plane", "", "wall shape (see minidem/geometry/walls.py)",
             choices=("plane", "box", "cylinder", "mesh")),
@@ -287,6 +298,9 @@ class Scene:
     fill_ranges: list = dataclasses.field(default_factory=list)  # (first, stop) particle index per [[fill]]
     integrator: str = "velocity_verlet"
     allow_unstable_dt: bool = False
+    # [contact.pairs."a/b"]: (material index, material index) (both orders) -> the law's
+    # parameters for that pair, the scene's values with the pair's overrides
+    pair_parameters: dict = dataclasses.field(default_factory=dict)
 
     @property
     def n_particles(self) -> int:
@@ -516,6 +530,76 @@ def _check_value(key: Key, value: Any, where: str, errors: _Errors) -> Any:
     raise AssertionError(key.kind)
 
 
+_PART_KEYS = ("normal", "damping", "tangential", "rolling", "twisting")
+
+
+def _contact_law(contact: dict, material_index: dict, raw_materials: dict, errors: _Errors):
+    """(law name, its parameters, per-material-pair parameters) of a [contact] table: a
+    law or preset by name, a combination of parts, or a preset with some parts replaced.
+    Problems go to ``errors``; the law name is None when there is no usable law."""
+    from minidem.contact import laws
+
+    values = _check_table(contact, SCHEMA["contact"][1], "contact", errors, open_keys=True)
+    registry = laws.registry()
+    chosen = {kind: values[kind].lower() for kind in _PART_KEYS if isinstance(values.get(kind), str)}
+    try:
+        if isinstance(values.get("law"), str):
+            entry = registry.entry(values["law"])
+            if chosen:
+                preset = registry.preset_of(entry)
+                if preset is None:
+                    raise laws.LawError(
+                        f"'{entry.law.name}' is a single law (normal, damping and tangential in one part): it takes "
+                        f"no {' or '.join(chosen)} part. Compose the law of parts instead (normal = ..., "
+                        f"damping = ..., tangential = ...; `minidem laws` lists them), or drop "
+                        f"{', '.join('contact.' + k for k in chosen)}")
+                entry = registry.combination({**preset.parts, **chosen}, preset.parameters)
+        elif chosen:
+            if "normal" not in chosen:
+                raise laws.LawError("a law composed of parts needs a normal part: normal = \"hertz\" or \"hooke\" "
+                                    "(`minidem laws` lists the parts), or law = \"...\" for a named law")
+            entry = registry.combination(chosen)
+        else:
+            errors.add("contact", 'missing law = "..." (a law or preset) or normal = "..." (a law composed of '
+                       "parts); `minidem laws` lists them")
+            return None, {}, {}
+    except laws.LawError as exc:
+        errors.add("contact.law" if "law" in contact and not chosen else "contact", str(exc))
+        return None, {}, {}
+    law = entry.law
+    given = {k: v for k, v in contact.items() if k not in ("law", "pairs", *_PART_KEYS)}
+    law_parameters, law_errors = law.resolve_parameters(given)
+    for message in law_errors:
+        errors.add("contact", message)
+    pair_parameters = {}
+    pairs = contact.get("pairs")
+    if isinstance(pairs, dict):
+        for key, table in pairs.items():
+            where = f'contact.pairs."{key}"'
+            names = key.split("/") if isinstance(key, str) else []
+            if len(names) != 2 or not all(names):
+                errors.add(where, "expected two material names joined by '/', e.g. [contact.pairs.\"glass/steel\"]")
+                continue
+            unknown = [n for n in names if n not in raw_materials]
+            if unknown:
+                errors.add(where, f"unknown material '{unknown[0]}'" + _did_you_mean(unknown[0], raw_materials)
+                           + f"; defined: {', '.join(raw_materials) or 'none'}")
+                continue
+            if not isinstance(table, dict) or not table:
+                errors.add(where, f"expected a table of parameters of law '{law.name}', e.g. friction = 0.5")
+                continue
+            if not all(n in material_index for n in names):
+                continue  # an invalid material, already reported
+            resolved, pair_errors = law.resolve_parameters({**given, **table})
+            for message in pair_errors:
+                errors.add(where, message)
+            a, b = material_index[names[0]], material_index[names[1]]
+            if (a, b) in pair_parameters:
+                errors.add(where, f"the pair '{names[0]}/{names[1]}' is given twice (in either order)")
+            pair_parameters[(a, b)] = pair_parameters[(b, a)] = resolved
+    return law.name, law_parameters, pair_parameters
+
+
 def _check_table(table: Any, keys: tuple[Key, ...], where: str, errors: _Errors, open_keys=False) -> dict:
     if not isinstance(table, dict):
         errors.add(where, f"expected a table, got {type(table).__name__}")
@@ -599,7 +683,7 @@ def load_scene(path: str | Path, overrides: list[str] = (), output_directory: st
 
 
 def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -> Scene:
-    from minidem import laws
+    from minidem.contact import laws
 
     errors = _Errors(source)
     for section in data:
@@ -636,23 +720,13 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
 
     # contact law
     contact = data.get("contact")
-    law_name, law_parameters = None, {}
+    law_name, law_parameters, pair_parameters = None, {}, {}
     if not isinstance(contact, dict):
         errors.add("contact", ("expected a table" if "contact" in data else "missing [contact] section")
-                   + ' with at least law = "..." and the law\'s parameters, e.g. friction (`minidem laws`)')
+                   + ' with at least law = "..." (or normal = "..." and the other parts) and the law\'s '
+                   'parameters, e.g. friction (`minidem laws`)')
     else:
-        _check_table(contact, SCHEMA["contact"][1], "contact", errors, open_keys=True)
-        if isinstance(contact.get("law"), str):
-            try:
-                law = laws.registry().get(contact["law"])
-            except laws.LawError as exc:
-                errors.add("contact.law", str(exc))
-            else:
-                law_name = law.name
-                given = {k: v for k, v in contact.items() if k != "law"}
-                law_parameters, law_errors = law.resolve_parameters(given)
-                for message in law_errors:
-                    errors.add("contact", message)
+        law_name, law_parameters, pair_parameters = _contact_law(contact, material_index, raw_materials, errors)
 
     # walls
     walls = data.get("walls", [])
@@ -752,6 +826,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         materials=materials,
         law_name=law_name,
         law_parameters=law_parameters,
+        pair_parameters=pair_parameters,
         position=np.array(position, dtype=np.float64).reshape(-1, 3),
         velocity=np.array(velocity, dtype=np.float64).reshape(-1, 3),
         angular_velocity=np.array(spin, dtype=np.float64).reshape(-1, 3),

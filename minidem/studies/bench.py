@@ -583,7 +583,7 @@ def run(quick: bool = False, docs: Path = DOCS, sections=ALL_SECTIONS, echo=prin
         figure = Path("figures") / "work_precision.png"
         plot_work_precision(wp, docs / figure, stamp(command))
         impact = reference.Impact(angle_deg=0.0)
-        from minidem.laws import hertz_contact_time
+        from minidem.contact.laws import hertz_contact_time
 
         normal_tc = hertz_contact_time(impact.effective_modulus, impact.radius, impact.mass, impact.speed)
         texts["work-precision"] = section_work_precision(wp, settings["wp_angles"], figure, command, normal_tc)

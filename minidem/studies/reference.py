@@ -1,7 +1,7 @@
 """Independent high-accuracy solution of the single sphere-wall impact (reference only).
 
 Used to measure the error of the explicit engine (``minidem bench``, tests); it shares no
-code with the engine or the laws in ``minidem/builtin_laws``: the laws are re-derived here
+code with the engine or the laws in ``minidem/contact/builtin_laws``: the laws are re-derived here
 from Thornton, Cummins & Cleary (2011) and ``../shared/paper/models.md`` in RATE form.
 
 The problem is the paper's 2-D one: normal overlap ``delta`` with approach speed ``u``,

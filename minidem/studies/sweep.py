@@ -178,7 +178,7 @@ def plan(data: dict, source: str) -> SweepPlan:
         errors.add("sweep.series_labels", f"expected {len(sweep.series())} labels (one per combination of "
                    f"{', '.join(sweep.series_keys) or 'nothing'}), got {len(sweep.series_labels)}")
     # every case must be a valid scenario before anything runs: bad input is exit 2
-    from minidem import laws
+    from minidem.contact import laws
     from minidem.engine import simulation
 
     with warnings.catch_warnings(record=True) as caught:
@@ -251,7 +251,7 @@ def code_fingerprint(law_names: tuple[str, ...]) -> str:
     import numpy
 
     import minidem
-    from minidem import laws
+    from minidem.contact import laws
     from minidem.engine import simulation
 
     digest = hashlib.sha256()

@@ -16,7 +16,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from minidem import laws
+from minidem.contact import laws
 from minidem.results import analysis
 from minidem.scene import scenario
 from minidem.engine import simulation
@@ -81,6 +81,11 @@ class Battery:
         return checks
 
     def sliding_limit(self) -> list[Check]:
+        resisting = [f"{p.kind} part '{p.name}'" for p in self.law.parts if p.kind in ("rolling", "twisting")]
+        if resisting:  # eqs 6-8 have only the tangential force turn the sphere
+            return [Check("rigid-body sliding limit", None, f"skipped: the combination has a {resisting[0]}",
+                          "not applicable: paper eqs 6-8 assume no rolling or twisting resistance",
+                          "paper eqs 6-8")]
         mu, worst = self.friction, 0.0
         for angle in SLIDING_ANGLES:
             s = self.run(f"impact.angle_deg={angle}")[0]
@@ -130,9 +135,13 @@ class Battery:
             phase = math.pi * step / steps
             overlap = peak * math.sin(phase)
             velocity = (tangential_speed * math.cos(2.0 * phase), 0.3 * tangential_speed * math.sin(3.0 * phase), 0.0)
+            arguments = (row, radius, mass, overlap, overlap - previous, normal_speed * math.cos(phase),
+                         (velocity[0] * dt, velocity[1] * dt, velocity[2] * dt), velocity, history)
+            if self.law.couples:  # rolling and twisting: a relative spin that turns and reverses too
+                spin = (40.0 * math.cos(2.0 * phase), 20.0 * math.sin(3.0 * phase), 30.0 * math.cos(phase))
+                arguments += (spin, (0.0, 0.0, 1.0), dt)
             try:
-                self.law.force(row, radius, mass, overlap, overlap - previous, normal_speed * math.cos(phase),
-                               (velocity[0] * dt, velocity[1] * dt, velocity[2] * dt), velocity, history)
+                self.law.force(*arguments)
             except numba.core.errors.NumbaError as exc:  # the force does not compile: say where, exit 2
                 raise laws.LawError(f"law '{self.law.name}' from plugin '{self.entry.plugin}' "
                                     f"({self.entry.distribution}): {simulation.force_problem(self.law, exc)}") from exc

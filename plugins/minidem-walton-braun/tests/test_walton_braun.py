@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from minidem import laws
+from minidem.contact import laws
 from minidem.results import analysis
 from minidem.scene import scenario
 from minidem.engine import simulation

@@ -32,8 +32,8 @@ import math
 
 import numba
 
-from minidem.builtin_laws.common import FRICTION, incremental_spring
-from minidem.laws import ContactLaw, HistorySlot, Parameter, hertz_contact_time
+from minidem.contact.builtin_laws.common import FRICTION, incremental_spring
+from minidem.contact import ContactLaw, HistorySlot, Parameter, hertz_contact_time
 
 # indices into the constants row (the order of WALTON_BRAUN.constants)
 K1, K2, KT, MU = 0, 1, 2, 3

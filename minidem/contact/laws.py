@@ -30,7 +30,7 @@ from typing import Any, Callable, Mapping
 
 import pluggy
 
-from minidem import hookspecs
+from minidem.contact import hookspecs
 
 ENTRY_POINT_GROUP = hookspecs.PROJECT_NAME
 _NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_]*$")
@@ -38,6 +38,9 @@ _ALIAS_PATTERN = re.compile(r"^[a-z][a-z0-9_-]*$")  # matched lower-cased: the p
 # the force function's arguments, in the order the engine passes them
 FORCE_ARGUMENTS = ("constants", "effective_radius", "effective_mass", "normal_overlap", "normal_overlap_increment",
                    "normal_velocity", "tangential_increment", "tangential_velocity", "history")
+# a law with couples (ContactLaw.couples: rolling or twisting resistance) also gets these,
+# and returns (fn, ftx, fty, ftz, mx, my, mz), the couple on the first body
+COUPLE_ARGUMENTS = ("relative_spin", "normal", "dt")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -182,10 +185,16 @@ class ContactLaw:
     frictional: bool = True
     reference: str = ""
     stiffness: Callable | None = None
+    couples: bool = False
+    parts: tuple = ()  # a combination's ContactParts (set by minidem.contact.compose); () for a law
 
     @property
     def history_size(self) -> int:
         return sum(slot.size for slot in self.history)
+
+    @property
+    def force_arguments(self) -> tuple[str, ...]:
+        return FORCE_ARGUMENTS + (COUPLE_ARGUMENTS if self.couples else ())
 
     @property
     def vector_history_offsets(self) -> tuple[int, ...]:
@@ -246,6 +255,10 @@ class ContactLaw:
         return row, produced
 
     def is_frictional(self, params: Mapping[str, Any]) -> bool:
+        """Whether the law needs the spheres' spin: it can produce a tangential force, or
+        it has couples (rolling, twisting)."""
+        if self.couples:
+            return True
         if not self.frictional:
             return False
         return params.get("friction", 1.0) != 0.0
@@ -258,6 +271,114 @@ class ContactLaw:
         except (OSError, TypeError):
             text = repr(func)
         return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+# ---------------------------------------------------------------------------------
+# Contact models from parts
+# ---------------------------------------------------------------------------------
+# The kinds of part, in the order the composed force calls them. Each kind's function
+# has one signature (PART_ARGUMENTS) and returns what the next kinds read: the normal
+# part's elastic force and stiffness are the damping part's input, the total normal force
+# is the tangential part's Coulomb limit. Those couplings are the whole of what parts
+# share; everything else a part keeps to itself (its constants, its history).
+KINDS = ("normal", "damping", "tangential", "rolling", "twisting")
+PART_ARGUMENTS = {
+    # -> (elastic normal force N, tangent stiffness dFn/d(overlap) N/m, contact radius m)
+    "normal": ("constants", "effective_radius", "effective_mass", "normal_overlap", "normal_overlap_increment",
+               "history"),
+    # -> normal force added by the dashpot, N (positive pushes the pair apart)
+    "damping": ("constants", "effective_radius", "effective_mass", "normal_overlap", "normal_velocity",
+                "normal_stiffness", "elastic_normal_force"),
+    # -> (ftx, fty, ftz) N, the force opposing the tangential motion, in the tangent plane
+    "tangential": ("constants", "effective_radius", "effective_mass", "normal_overlap", "normal_overlap_increment",
+                   "contact_radius", "elastic_normal_force", "normal_force", "tangential_increment",
+                   "tangential_velocity", "history"),
+    # -> (mx, my, mz) N m, the couple on the first body (the second gets its opposite);
+    # rolling_increment: the spin of the first body relative to the second, in the
+    # tangent plane, times dt (rad; a vector of the tangent plane, like a history vector)
+    "rolling": ("constants", "effective_radius", "effective_mass", "normal_overlap", "contact_radius",
+                "normal_stiffness", "normal_force", "rolling_increment", "rolling_velocity", "history"),
+    # -> the couple about the normal on the first body, N m (positive along n);
+    # twisting_increment: the relative spin along n times dt (rad)
+    "twisting": ("constants", "effective_radius", "effective_mass", "normal_overlap", "contact_radius",
+                 "normal_stiffness", "normal_force", "twisting_increment", "twisting_velocity", "history"),
+}
+# what a part may do to the energy of the contact (analysis and verify check each kind
+# against its own bound): store it and give it back (a spring), dissipate it (a dashpot,
+# sliding friction), or supply it (adhesion: at most the work of adhesion per contact)
+ENERGY_ROLES = ("store", "dissipate", "supply")
+
+
+@dataclasses.dataclass(frozen=True)
+class ContactPart:
+    """One part of a contact model, declared once and registered by a plugin.
+
+    A contact model is a combination of at most one part of each kind (``KINDS``):
+    ``[contact] normal = "hertz", damping = "tsuji", tangential = "mindlin"``. minidem
+    generates the combination's force function, calling the parts' functions in the order
+    of ``KINDS``, and compiles it into the kernel once per combination (the parts are
+    inlined; no part a scene does not name is compiled or paid for).
+
+    name          unique lower-case identifier across all parts and laws (``"hertz"``)
+    kind          one of KINDS; the signature of ``function`` is PART_ARGUMENTS[kind]
+    description   one line for ``minidem laws``
+    parameters    settable from ``[contact]`` (flat: a combination's parts must not
+                  declare the same parameter name twice, unless the declarations are equal)
+    constants     names of the per-material-pair constants ``prepare`` returns, in the
+                  order ``function`` indexes them (its own row, from index 0)
+    history       per-contact state slots (its own slice of the contact's history, from 0)
+    prepare       ``prepare(pair: ContactPair, params: dict, prepared: dict) -> dict``;
+                  ``prepared`` maps each kind prepared before this one (KINDS order) to
+                  its constants, e.g. a tangential stiffness set as a ratio of kn
+    function      numba ``@njit`` function defined at module level
+    energy        what the part may do to the contact's energy (ENERGY_ROLES)
+    provides      traits the part offers to the others (a normal part: ``"hertzian"``
+                  for Fn ~ d^1.5, ``"linear"`` for Fn = kn d)
+    requires      traits the combination must provide (Tsuji damping maps restitution
+                  for a Hertzian spring only: requires ``("hertzian",)``)
+    reach         how far beyond touch (m, as a negative overlap) the part acts; 0: only
+                  while the surfaces overlap
+    contact_time  normal parts: ``contact_time(pair, constants, effective_radius,
+                  effective_mass, normal_speed) -> s``, for the automatic time step
+    stiffness     normal parts: ``stiffness(pair, constants, R*, m*, overlap) -> kn``;
+                  tangential parts: ``-> kt``; damping parts: ``-> damping ratio`` at
+                  that overlap (the time-step stability limit)
+    """
+
+    name: str
+    kind: str
+    description: str
+    parameters: tuple[Parameter, ...]
+    constants: tuple[str, ...]
+    history: tuple[HistorySlot, ...]
+    prepare: Callable[[ContactPair, dict, dict], Mapping[str, float]]
+    function: Any
+    energy: tuple[str, ...] = ("store",)
+    provides: tuple[str, ...] = ()
+    requires: tuple[str, ...] = ()
+    reach: float = 0.0
+    contact_time: Callable | None = None
+    stiffness: Callable | None = None
+    reference: str = ""
+
+    @property
+    def history_size(self) -> int:
+        return sum(slot.size for slot in self.history)
+
+
+@dataclasses.dataclass(frozen=True)
+class Preset:
+    """A named combination of parts with parameter defaults: ``[contact] law = NAME``
+    runs ``parts`` (kind -> part name) with ``parameters`` as defaults the scenario may
+    override. A ``ContactLaw`` is its own preset (one part covering normal, damping and
+    tangential: the paper's laws)."""
+
+    name: str
+    description: str
+    parts: Mapping[str, str]
+    parameters: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    aliases: tuple[str, ...] = ()
+    reference: str = ""
 
 
 class LawError(Exception):
@@ -290,12 +411,116 @@ class LawRegistry:
         self._claims: dict[str, list[tuple[str, str, str]]] = {}
         self.broken: list[BrokenPlugin] = []
         self._current = ("<direct>", "<direct>", "")
+        # parts (by name, every kind in one namespace, shared with laws and presets) and
+        # presets, each with the (plugin, distribution, version) that registered it
+        self._parts: dict[str, tuple[ContactPart, tuple[str, str, str]]] = {}
+        self._presets: dict[str, tuple[Preset, tuple[str, str, str]]] = {}
+        self._combinations: dict[str, RegisteredLaw] = {}
+
+    # -- parts and presets -----------------------------------------------------------
+    def _parts_and_presets(self) -> dict[str, str]:
+        """name -> what holds it, for the messages of a refused name."""
+        taken = {}
+        for name, (part, (plugin, dist, _)) in self._parts.items():
+            taken[name] = f"the {part.kind} part '{name}' of plugin '{plugin}' ({dist})"
+        for name, (preset, (plugin, dist, _)) in self._presets.items():
+            taken[name] = f"the preset '{name}' of plugin '{plugin}' ({dist})"
+            for alias in preset.aliases:
+                taken.setdefault(alias.lower(), taken[name])
+        return taken
+
+    def _add_part_or_preset(self, item) -> None:
+        plugin, dist, version = self._current
+        name = getattr(item, "name", None)
+        problem = _part_problem(item) if isinstance(item, ContactPart) else _preset_problem(item)
+        if problem is None:
+            names = [item.name] + ([a.lower() for a in item.aliases] if isinstance(item, Preset) else [])
+            for claimed in names:
+                owner = self._parts_and_presets().get(claimed)
+                if owner is None and self._owner(claimed) is not None:
+                    law = self._owner(claimed)
+                    owner = f"law '{law.law.name}' of plugin '{law.plugin}' ({law.distribution})"
+                if owner is not None:
+                    problem = f"name '{claimed}' is already taken by {owner}"
+                    break
+        if problem is not None:
+            self.broken.append(BrokenPlugin(plugin, name if isinstance(name, str) else None, problem))
+            return
+        if isinstance(item, ContactPart):
+            self._parts[item.name] = (item, (plugin, dist, version))
+        else:
+            self._presets[item.name] = (item, (plugin, dist, version))
+
+    def parts(self, kind: str | None = None) -> list[ContactPart]:
+        """The registered parts (of one kind), sorted by name."""
+        return [part for name, (part, _) in sorted(self._parts.items()) if kind in (None, part.kind)]
+
+    def part_origin(self, name: str) -> tuple[str, str, str]:
+        """(plugin, distribution, version) of a registered part."""
+        return self._parts[name][1]
+
+    def preset_of(self, entry: RegisteredLaw) -> Preset | None:
+        """The preset an entry of ``entry()`` was made from, None for a law or a bare combination."""
+        found = self._presets.get(entry.law.name)
+        return found[0] if found is not None else None
+
+    def presets(self) -> list[Preset]:
+        return [preset for _, (preset, _) in sorted(self._presets.items())]
+
+    def part(self, kind: str, name: str) -> ContactPart:
+        """The part ``name`` of ``kind``; a LawError listing that kind's parts otherwise."""
+        key = name.lower() if isinstance(name, str) else name
+        found = self._parts.get(key)
+        if found is not None and found[0].kind == kind:
+            return found[0]
+        for b in self.broken:
+            if b.law is not None and key == b.law:
+                raise LawError(f"{kind} part '{name}' from plugin '{b.plugin}' is broken: {b.reason}")
+        available = [p.name for p in self.parts(kind)]
+        if found is not None:
+            why = f"'{name}' is a {found[0].kind} part, not a {kind} part"
+        else:
+            close = difflib.get_close_matches(str(key), available, n=1)
+            why = f"unknown {kind} part '{name}'" + (f" (did you mean '{close[0]}'?)" if close else "")
+        raise LawError(f"{why}; {kind} parts: {', '.join(available) or 'none installed'}, or \"none\" "
+                       "(`minidem laws` lists them)")
+
+    def combination(self, choice: Mapping[str, str], defaults: Mapping[str, float] | None = None,
+                    name: str | None = None) -> RegisteredLaw:
+        """The contact law made of the parts ``choice`` (kind -> part name; "none" or a
+        missing kind: no part of that kind), composed and compiled once per process.
+        Raises LawError for an unknown kind or part and for a combination the parts'
+        declarations refuse (no normal part, a requirement not met)."""
+        from minidem.contact import compose
+
+        unknown = sorted(set(choice) - set(KINDS))
+        if unknown:
+            raise LawError(f"unknown part kind(s) {unknown}; kinds: {', '.join(KINDS)}")
+        parts = tuple(self.part(kind, choice[kind]) for kind in KINDS
+                      if choice.get(kind) not in (None, "none"))
+        compose.check_combination(parts)
+        key = "+".join(p.name for p in parts) + f"@{name}{sorted((defaults or {}).items())}"
+        if key not in self._combinations:
+            origins = [self._parts[p.name][1] for p in parts]
+            law = compose.compose(parts, origins, defaults or {}, name)
+            plugins = ", ".join(dict.fromkeys(o[0] for o in origins))
+            dists = dict.fromkeys((o[1], o[2]) for o in origins)  # in KINDS order, each once
+            self._combinations[key] = RegisteredLaw(law, plugins, " + ".join(d for d, _ in dists),
+                                                    " + ".join(v for _, v in dists))
+        return self._combinations[key]
 
     # -- the object plugins receive in minidem_register_laws(registry) -------------
-    def add(self, law: ContactLaw) -> None:
+    def add(self, law: ContactLaw | ContactPart | Preset) -> None:
+        """Register a law, a part or a preset; a declaration that fails the checks is
+        recorded in ``broken`` with the plugin's name and the reason."""
+        if isinstance(law, (ContactPart, Preset)):
+            self._add_part_or_preset(law)
+            return
         plugin, dist, version = self._current
         problem = _declaration_problem(law)
         name = getattr(law, "name", None)
+        if problem is None and name in self._parts_and_presets():
+            problem = f"name '{name}' is already taken by {self._parts_and_presets()[name]}"
         if problem is None:
             problem = self._claim_problem(law, plugin, dist)
         if problem is not None:
@@ -355,22 +580,54 @@ class LawRegistry:
         return [self._laws[n] for n in self.names()]
 
     def entry(self, name: str) -> RegisteredLaw:
+        """A law by name or alias, a preset, or a combination of parts written as their
+        names joined by '+' in the order of KINDS (``"hertz+tsuji+mindlin"``)."""
         key = name.lower() if isinstance(name, str) else name
         if key in self._laws:  # a name before an alias
             return self._laws[key]
         if key in self._aliases:
             return self._laws[self._aliases[key]]
+        if isinstance(key, str) and "+" in key:
+            return self.combination(self._choice_of(key.split("+")))
+        preset = self._preset(key)
+        if preset is not None:
+            return self.combination(preset.parts, preset.parameters, preset.name)
         for b in self.broken:
             if b.law is not None and (key == b.law or key in b.aliases):
                 raise LawError(f"law '{name}' from plugin '{b.plugin}' is broken: {b.reason}")
-        candidates = self.names() + sorted(self._aliases)
+        candidates = self.names() + sorted(self._aliases) + [p.name for p in self.presets()]
         close = difflib.get_close_matches(str(key), candidates, n=1)
         hint = f" Did you mean '{close[0]}'?" if close else ""
         failed = [b for b in self.broken if b.law is None]
         if failed:
             hint += (f" {len(failed)} plugin(s) failed to load, so their laws are unknown: "
                      + "; ".join(f"'{b.plugin}': {b.reason}" for b in failed) + " (see `minidem laws`).")
-        raise LawError(f"unknown contact law '{name}'. Available: {', '.join(self.names())}.{hint}")
+        presets = f"; presets: {', '.join(p.name for p in self.presets())}" if self._presets else ""
+        raise LawError(f"unknown contact law '{name}'. Available: {', '.join(self.names())}{presets}.{hint} "
+                       "Or compose one from parts: [contact] normal = ..., damping = ..., tangential = ... "
+                       "(`minidem laws`).")
+
+    def _preset(self, key) -> Preset | None:
+        for preset in self.presets():
+            if key == preset.name or key in (a.lower() for a in preset.aliases):
+                return preset
+        return None
+
+    def _choice_of(self, names: list[str]) -> dict[str, str]:
+        """kind -> part name for part names given without their kinds."""
+        choice: dict[str, str] = {}
+        for part_name in names:
+            found = self._parts.get(part_name)
+            if found is None:
+                close = difflib.get_close_matches(part_name, sorted(self._parts), n=1)
+                raise LawError(f"unknown part '{part_name}'" + (f" (did you mean '{close[0]}'?)" if close else "")
+                               + f"; parts: {', '.join(sorted(self._parts)) or 'none installed'}")
+            kind = found[0].kind
+            if kind in choice:
+                raise LawError(f"two {kind} parts, '{choice[kind]}' and '{part_name}': a combination has at "
+                               f"most one part of each kind ({', '.join(KINDS)})")
+            choice[kind] = part_name
+        return choice
 
     def get(self, name: str) -> ContactLaw:
         return self.entry(name).law
@@ -382,46 +639,103 @@ class LawRegistry:
 
 def _declaration_problem(law) -> str | None:
     if not isinstance(law, ContactLaw):
-        return f"registry.add() expects a minidem.laws.ContactLaw, got {type(law).__name__}"
+        return f"registry.add() expects a minidem.contact.ContactLaw (or ContactPart, Preset), got {type(law).__name__}"
     if not isinstance(law.name, str) or not _NAME_PATTERN.match(law.name):
         return f"law name {law.name!r} is not a lower-case identifier"
-    if not isinstance(law.description, str) or not law.description.strip():
-        return "description must be a non-empty string"
-    for field, kind in (("parameters", Parameter), ("history", HistorySlot)):
-        items = getattr(law, field)
-        if not isinstance(items, tuple) or not all(isinstance(x, kind) for x in items):
-            return f"'{field}' must be a tuple of minidem.laws.{kind.__name__}"
-    names = [p.name for p in law.parameters]
-    if len(set(names)) != len(names):
-        return "parameter names are not unique"
-    for p in law.parameters:
-        if p.default is not None and p.check(p.default):
-            return f"default of parameter '{p.name}' {p.check(p.default)}"
-    if not isinstance(law.constants, tuple) or not all(isinstance(c, str) for c in law.constants):
-        return "'constants' must be a tuple of names"
+    problem = _shared_declaration_problem(law)
+    if problem is not None:
+        return problem
     if not isinstance(law.aliases, tuple) or not all(
             isinstance(a, str) and _ALIAS_PATTERN.match(a.lower()) for a in law.aliases):
         return (f"'aliases' must be a tuple of names (letters, digits, '_' and '-', starting with a letter), "
                 f"got {law.aliases!r}")
-    if not callable(law.prepare):
+    if law.parts != ():
+        return "'parts' is minidem's own (the parts of a combination it composed); leave it empty"
+    if not isinstance(law.couples, bool):
+        return f"'couples' must be True or False, got {law.couples!r}"
+    return _compiled_function_problem(law.force, "force", law.force_arguments)
+
+
+def _shared_declaration_problem(item) -> str | None:
+    """The checks a law and a part share: description, parameters (unique names, valid
+    defaults), history slots, constants, and that the Python hooks are callable."""
+    if not isinstance(item.description, str) or not item.description.strip():
+        return "description must be a non-empty string"
+    for field, kind in (("parameters", Parameter), ("history", HistorySlot)):
+        items = getattr(item, field)
+        if not isinstance(items, tuple) or not all(isinstance(x, kind) for x in items):
+            return f"'{field}' must be a tuple of minidem.contact.{kind.__name__}"
+    names = [p.name for p in item.parameters]
+    if len(set(names)) != len(names):
+        return "parameter names are not unique"
+    for p in item.parameters:
+        if p.default is not None and p.check(p.default):
+            return f"default of parameter '{p.name}' {p.check(p.default)}"
+    if not isinstance(item.constants, tuple) or not all(isinstance(c, str) for c in item.constants):
+        return "'constants' must be a tuple of names"
+    if not callable(item.prepare):
         return "'prepare' is not callable"
     for hook in ("contact_time", "stiffness"):
-        if getattr(law, hook) is not None and not callable(getattr(law, hook)):
-            return f"'{hook}' must be a function or None, got {type(getattr(law, hook)).__name__}"
-    if not hasattr(law.force, "py_func"):
-        return "'force' is not a numba-compiled function (decorate it with @numba.njit)"
-    func = law.force.py_func
+        if getattr(item, hook) is not None and not callable(getattr(item, hook)):
+            return f"'{hook}' must be a function or None, got {type(getattr(item, hook)).__name__}"
+    return None
+
+
+def _part_problem(part) -> str | None:
+    """Why a part's declaration cannot be used, or None (checked at registration)."""
+    if not isinstance(part.name, str) or not _NAME_PATTERN.match(part.name) or part.name == "none":
+        return f"part name {part.name!r} is not a lower-case identifier (and not 'none')"
+    if part.kind not in KINDS:
+        return f"kind {part.kind!r} is not one of {', '.join(KINDS)}"
+    problem = _shared_declaration_problem(part)
+    if problem is not None:
+        return problem
+    for field in ("energy", "provides", "requires"):
+        value = getattr(part, field)
+        if not isinstance(value, tuple) or not all(isinstance(x, str) for x in value):
+            return f"'{field}' must be a tuple of strings, got {value!r}"
+    if not part.energy or not set(part.energy) <= set(ENERGY_ROLES):
+        return f"'energy' must name one or more of {', '.join(ENERGY_ROLES)}, got {part.energy!r}"
+    if isinstance(part.reach, bool) or not isinstance(part.reach, numbers.Real) or not 0.0 <= part.reach < math.inf:
+        return f"'reach' must be a distance in m, >= 0 and finite, got {part.reach!r}"
+    if part.reach > 0.0:
+        return "'reach' > 0 (a part acting beyond touch) is not supported by this engine yet"
+    if part.kind == "normal" and part.contact_time is None:
+        return "a normal part must declare contact_time (the automatic time step needs it)"
+    return _compiled_function_problem(part.function, "function", PART_ARGUMENTS[part.kind])
+
+
+def _preset_problem(preset) -> str | None:
+    if not isinstance(preset.name, str) or not _NAME_PATTERN.match(preset.name):
+        return f"preset name {preset.name!r} is not a lower-case identifier"
+    if not isinstance(preset.description, str) or not preset.description.strip():
+        return "description must be a non-empty string"
+    if not isinstance(preset.parts, Mapping) or not set(preset.parts) <= set(KINDS) or "normal" not in preset.parts:
+        return f"'parts' must map kinds ({', '.join(KINDS)}) to part names, with a normal part"
+    if not isinstance(preset.parameters, Mapping):
+        return "'parameters' must be a dict of parameter defaults"
+    if not isinstance(preset.aliases, tuple) or not all(
+            isinstance(a, str) and _ALIAS_PATTERN.match(a.lower()) for a in preset.aliases):
+        return f"'aliases' must be a tuple of names, got {preset.aliases!r}"
+    return None
+
+
+def _compiled_function_problem(function, field: str, arguments: tuple[str, ...]) -> str | None:
+    """Why ``function`` cannot be imported into the kernel and called with ``arguments``."""
+    if not hasattr(function, "py_func"):
+        return f"'{field}' is not a numba-compiled function (decorate it with @numba.njit)"
+    func = function.py_func
     if "<locals>" in func.__qualname__ or func.__module__ == "__main__":
-        return "'force' must be defined at module level in an importable module"
+        return f"'{field}' must be defined at module level in an importable module"
     try:
-        force_import_name(law)
+        import_name(function, field)
     except LawError as exc:
         return str(exc)
-    arguments = [p for p in inspect.signature(func).parameters.values()
-                 if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
-    if len(arguments) != len(FORCE_ARGUMENTS):
-        return (f"'force' ({func.__qualname__}) takes {len(arguments)} arguments; the engine calls it with "
-                f"{len(FORCE_ARGUMENTS)}: ({', '.join(FORCE_ARGUMENTS)})")
+    given = [p for p in inspect.signature(func).parameters.values()
+             if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    if len(given) != len(arguments):
+        return (f"'{field}' ({func.__qualname__}) takes {len(given)} arguments; the engine calls it with "
+                f"{len(arguments)}: ({', '.join(arguments)})")
     return None
 
 
@@ -429,16 +743,22 @@ def force_import_name(law: ContactLaw) -> tuple[str, str]:
     """(module, attribute) under which the law's compiled force function can be imported:
     the engine's kernel imports it from there. Usually the function's own name; for
     ``force = numba.njit(_force_impl)`` the name it was bound to."""
-    func = law.force.py_func
+    return import_name(law.force, "force")
+
+
+def import_name(function, field: str) -> tuple[str, str]:
+    """(module, attribute) under which a compiled function of a law or part is imported
+    by generated code (the kernel, a combination's force)."""
+    func = function.py_func
     module = sys.modules.get(func.__module__)
     if module is None:
-        raise LawError(f"'force': its module '{func.__module__}' is not imported")
-    if getattr(module, func.__qualname__, None) is law.force:
+        raise LawError(f"'{field}': its module '{func.__module__}' is not imported")
+    if getattr(module, func.__qualname__, None) is function:
         return func.__module__, func.__qualname__
     for attribute, value in vars(module).items():
-        if value is law.force:
+        if value is function:
             return func.__module__, attribute
-    raise LawError(f"'force' ({func.__qualname__}) is not a module-level name of {func.__module__}: "
+    raise LawError(f"'{field}' ({func.__qualname__}) is not a module-level name of {func.__module__}: "
                    "the engine imports it from there (bind the compiled function to a name at module level)")
 
 
@@ -500,7 +820,7 @@ def _one_line(exc: BaseException) -> str:
     frames = traceback.extract_tb(exc.__traceback__) if exc.__traceback__ else []
     own = [f for f in frames if not f.filename.startswith("<frozen")
            and not any(part in f.filename for part in (f"{os.sep}pluggy{os.sep}", f"{os.sep}importlib{os.sep}",
-                                                        f"{os.sep}minidem{os.sep}laws.py"))]
+                                                        f"{os.sep}minidem{os.sep}contact{os.sep}laws.py"))]
     if isinstance(exc, SyntaxError) and exc.filename:
         where = f" (at {exc.filename}:{exc.lineno})"
     elif own:

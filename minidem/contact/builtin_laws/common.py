@@ -4,7 +4,7 @@ import math
 
 import numba
 
-from minidem.laws import Parameter
+from minidem.contact.laws import Parameter
 
 FRICTION = Parameter(
     "friction", None, "-", "Coulomb friction coefficient mu", low=0.0, required=True

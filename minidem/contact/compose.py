@@ -1,0 +1,213 @@
+"""A contact law composed of parts: the combination's checks, its generated force
+function and the ``ContactLaw`` the engine runs.
+
+The engine knows one kind of law (``minidem.contact.laws.ContactLaw``: a constants row, a
+history row, one compiled force function). A combination of parts becomes exactly
+that, so everything downstream (the kernel, its cache, the time step, checkpoints,
+``minidem verify``) is the same code for a preset law and for a combination:
+
+* constants: the parts' rows side by side, in the order of ``laws.KINDS``; each part
+  reads its own row from index 0 (a slice);
+* history: likewise, each part its own slice (vector slots keep their meaning: the
+  engine rotates them by their offset in the whole row);
+* force: a small module generated into the kernel cache that imports the parts'
+  functions and calls them in the order of KINDS, passing on what the next part reads
+  (``laws.PART_ARGUMENTS``). numba compiles it with the parts inlined into the kernel;
+  its name carries a hash of the parts' code, so a changed part never reuses a stale
+  kernel (the kernel's own key follows every function the force calls).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import importlib.util
+import os
+import sys
+from typing import Mapping
+
+import numba
+
+from minidem.contact import laws
+
+_GENERATOR_VERSION = "1"  # bump when the generated source below changes shape
+
+
+def check_combination(parts: tuple[laws.ContactPart, ...]) -> None:
+    """Refuse a combination the parts' declarations do not allow (LawError, one message
+    naming every problem): no normal part, a trait a part requires that no other part
+    provides, one parameter name declared differently by two parts."""
+    problems = []
+    kinds = [p.kind for p in parts]
+    if "normal" not in kinds:
+        named = ", ".join(f"{p.kind} '{p.name}'" for p in parts) or "no parts"
+        problems.append(f"a combination needs a normal part (given {named}): the damping and tangential parts "
+                        "act on the normal force")
+    provided = {trait: part.name for part in parts for trait in part.provides}
+    for part in parts:
+        for trait in part.requires:
+            if trait not in provided:
+                normal = next((p for p in parts if p.kind == "normal"), None)
+                offers = f" ('{normal.name}' provides {', '.join(normal.provides) or 'nothing'})" if normal else ""
+                problems.append(f"{part.kind} part '{part.name}' requires a '{trait}' part{offers}")
+    declared: dict[str, tuple[laws.Parameter, str]] = {}
+    for part in parts:
+        for parameter in part.parameters:
+            other = declared.get(parameter.name)
+            if other is not None and other[0] != parameter:
+                problems.append(f"parameter '{parameter.name}' is declared by both '{other[1]}' and '{part.name}' "
+                                "with different meanings")
+            declared.setdefault(parameter.name, (parameter, part.name))
+    if problems:
+        raise laws.LawError("invalid combination " + "+".join(p.name for p in parts) + ": " + "; ".join(problems))
+
+
+def compose(parts: tuple[laws.ContactPart, ...], origins, defaults: Mapping[str, float],
+            preset: str | None = None) -> laws.ContactLaw:
+    """The ContactLaw of a checked combination (see the module docstring). ``defaults``
+    replace the parts' parameter defaults (a preset's values)."""
+    name = preset or "+".join(p.name for p in parts)
+    parameters, seen = [], set()
+    for part in parts:
+        for parameter in part.parameters:
+            if parameter.name in seen:
+                continue
+            seen.add(parameter.name)
+            if parameter.name in defaults:
+                parameter = dataclasses.replace(parameter, default=float(defaults[parameter.name]), required=False)
+            parameters.append(parameter)
+    unknown = sorted(set(defaults) - seen)
+    if unknown:
+        raise laws.LawError(f"preset '{name}': parameters {unknown} belong to none of its parts")
+    constants = tuple(f"{p.kind}.{c}" for p in parts for c in p.constants)
+    history = tuple(dataclasses.replace(slot, name=f"{p.kind}.{slot.name}") for p in parts for slot in p.history)
+    by_kind = {p.kind: p for p in parts}
+    normal, damping, tangential = by_kind["normal"], by_kind.get("damping"), by_kind.get("tangential")
+
+    def own(named: Mapping[str, float], part: laws.ContactPart) -> dict[str, float]:
+        return {c: named[f"{part.kind}.{c}"] for c in part.constants}
+
+    def prepare(pair, params):
+        prepared: dict[str, dict] = {}
+        out = {}
+        for part in parts:
+            values = {p.name: params.get(p.name) for p in part.parameters}
+            produced = part.prepare(pair, values, dict(prepared))
+            if not isinstance(produced, Mapping):
+                raise laws.LawError(f"part '{part.name}': prepare() must return a dict of constants, "
+                                    f"got {type(produced).__name__}")
+            missing = [c for c in part.constants if c not in produced]
+            if missing:
+                raise laws.LawError(f"part '{part.name}': prepare() did not return constants {missing}")
+            prepared[part.kind] = {c: float(produced[c]) for c in part.constants}
+            out.update({f"{part.kind}.{c}": v for c, v in prepared[part.kind].items()})
+        return out
+
+    def contact_time(pair, named, effective_radius, effective_mass, normal_speed):
+        return normal.contact_time(pair, own(named, normal), effective_radius, effective_mass, normal_speed)
+
+    def stiffness(pair, named, effective_radius, effective_mass, normal_overlap):
+        def of(part, default):
+            if part is None or part.stiffness is None:
+                return default
+            return float(part.stiffness(pair, own(named, part), effective_radius, effective_mass, normal_overlap))
+
+        kn_default, kt_default = laws.hertz_mindlin_stiffness(pair, effective_radius, normal_overlap)
+        return (of(normal, kn_default), of(tangential, kt_default if tangential else 0.0), of(damping, 0.0))
+
+    force = _generated_force(parts)
+    couples = "rolling" in by_kind or "twisting" in by_kind
+    return laws.ContactLaw(
+        name=name,
+        description=" + ".join(f"{p.kind} {p.name}" for p in parts),
+        parameters=tuple(parameters),
+        constants=constants,
+        history=history,
+        prepare=prepare,
+        force=force,
+        contact_time=contact_time,
+        frictional=tangential is not None,
+        reference="; ".join(dict.fromkeys(p.reference for p in parts if p.reference)),
+        stiffness=stiffness,
+        couples=couples,
+        parts=tuple(parts),
+    )
+
+
+def _generated_force(parts: tuple[laws.ContactPart, ...]):
+    """Write (once) and import the module holding the combination's force function."""
+    from minidem.engine.simulation import _force_dependencies, cache_directory
+
+    lines, imports = [], []
+    constant_at, history_at = 0, 0
+    call = {}
+    for part in parts:
+        module, attribute = laws.import_name(part.function, "function")
+        imports.append(f"from {module} import {attribute} as {part.kind}_part")
+        c_end, h_end = constant_at + len(part.constants), history_at + part.history_size
+        call[part.kind] = (f"constants[{constant_at}:{c_end}]", f"history[{history_at}:{h_end}]")
+        constant_at, history_at = c_end, h_end
+    lines.append("    elastic, stiffness, contact_radius = normal_part(\n"
+                 f"        {call['normal'][0]}, effective_radius, effective_mass, normal_overlap, "
+                 f"normal_overlap_increment, {call['normal'][1]})")
+    if "damping" in call:
+        lines.append(f"    normal_force = elastic + damping_part({call['damping'][0]}, effective_radius, "
+                     "effective_mass, normal_overlap, normal_velocity, stiffness, elastic)")
+    else:
+        lines.append("    normal_force = elastic")
+    if "tangential" in call:
+        lines.append(f"    ftx, fty, ftz = tangential_part(\n        {call['tangential'][0]}, effective_radius, "
+                     "effective_mass, normal_overlap, normal_overlap_increment, contact_radius, elastic, normal_force,\n"
+                     f"        tangential_increment, tangential_velocity, {call['tangential'][1]})")
+    else:
+        lines.append("    ftx, fty, ftz = 0.0, 0.0, 0.0")
+    couples = "rolling" in call or "twisting" in call
+    if couples:
+        imports.append("from minidem.contact.compose import split_spin")
+        lines.append("    rolling_velocity, twisting_velocity = split_spin(relative_spin, normal)")
+        lines.append("    mx, my, mz = 0.0, 0.0, 0.0")
+    if "rolling" in call:
+        lines.append(f"    mx, my, mz = rolling_part(\n        {call['rolling'][0]}, effective_radius, effective_mass, "
+                     "normal_overlap, contact_radius, stiffness, normal_force,\n        (rolling_velocity[0] * dt, "
+                     "rolling_velocity[1] * dt, rolling_velocity[2] * dt), rolling_velocity, "
+                     f"{call['rolling'][1]})")
+    if "twisting" in call:
+        lines.append(f"    twist = twisting_part(\n        {call['twisting'][0]}, effective_radius, effective_mass, "
+                     "normal_overlap, contact_radius, stiffness, normal_force, twisting_velocity * dt,\n"
+                     f"        twisting_velocity, {call['twisting'][1]})")
+        lines.append("    mx, my, mz = mx + twist * normal[0], my + twist * normal[1], mz + twist * normal[2]")
+    lines.append("    return normal_force, ftx, fty, ftz" + (", mx, my, mz" if couples else ""))
+    combination = "+".join(p.name for p in parts)
+    arguments = laws.FORCE_ARGUMENTS + (laws.COUPLE_ARGUMENTS if couples else ())
+    source = (f'"""Generated by minidem.contact.compose: the force of the combination {combination}. Do not edit."""\n\n'
+              "import numba\n\n" + "\n".join(imports) + "\n\n\n"
+              "@numba.njit(cache=True)\n"
+              f"def force({', '.join(arguments)}):\n" + "\n".join(lines) + "\n")
+    # the module's name follows its source and the code of every function the parts call
+    digest = hashlib.sha256(source.encode())
+    for part in parts:
+        digest.update(_force_dependencies(part.function)[0].encode())
+    digest.update(_GENERATOR_VERSION.encode())
+    module_name = f"minidem_combination_{'_'.join(p.name for p in parts)}_{digest.hexdigest()[:16]}"
+    if module_name not in sys.modules:
+        path = cache_directory() / f"{module_name}.py"
+        if not path.exists():  # written once, never touched again (numba keys its cache on the stamp)
+            tmp = path.with_suffix(f".tmp{os.getpid()}")
+            tmp.write_text(source)
+            os.replace(tmp, path)
+        spec = importlib.util.spec_from_file_location(module_name, path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[module_name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[module_name].force
+
+
+
+@numba.njit(cache=True, inline="always")
+def split_spin(relative_spin, normal):
+    """The spin of the first body relative to the second split into its rolling part (in
+    the tangent plane, a 3-tuple, rad/s) and its twisting part (along n, rad/s)."""
+    wx, wy, wz = relative_spin
+    nx, ny, nz = normal
+    along = wx * nx + wy * ny + wz * nz
+    return (wx - along * nx, wy - along * ny, wz - along * nz), along
