@@ -320,7 +320,7 @@ def hertz_impact(scene, velocity, normal, partner) -> dict:
     the initial normal approach speed v (Chung & Ooi 2011, tests 1-3; Johnson 1985):
     alpha_max = (15 m* v^2 / (16 E* sqrt(R*)))^(2/5), F_max = 4/3 E* sqrt(R*)
     alpha_max^(3/2), t_c = 2.868 (m*^2 / (R* E*^2 v))^(1/5)."""
-    from minidem.laws import ContactPair
+    from minidem.contact.laws import ContactPair
 
     materials = scene.materials
     first = materials[scene.particle_material[0]]
