@@ -493,14 +493,29 @@ class Simulation:
         scene = self.scene
         if scene.impact is not None:
             return float(scene.radius[0]), float(scene.mass[0])
+        if self._two_sphere_collision() is not None:
+            # the one contact there will be: its effective radius and mass
+            r, m = scene.radius, scene.mass
+            return float(r[0] * r[1] / (r[0] + r[1])), float(m[0] * m[1] / (m[0] + m[1]))
         return float(scene.radius.mean()), float(scene.mass.mean())
+
+    def _two_sphere_collision(self) -> float | None:
+        """The normal approach speed of a scene of two spheres, no walls and no gravity,
+        that move towards each other (Chung & Ooi tests 1, 7, 8): the reference speed of
+        laws calibrated from one (the linear spring's eq 28), as an [impact] speed is."""
+        scene = self.scene
+        if scene.impact is not None or scene.n_particles != 2 or scene.has_walls or np.any(scene.gravity != 0.0):
+            return None
+        n = scene.position[0] - scene.position[1]
+        speed = -float((scene.velocity[0] - scene.velocity[1]) @ n) / float(np.linalg.norm(n))
+        return speed if speed > 0.0 else None
 
     def _prepare_constants(self) -> None:
         scene, law = self.scene, self.law
         materials = scene.materials
         n = len(materials)
         radius, mass = self._reference_size()
-        speed = scene.impact.speed if scene.impact is not None else None
+        speed = scene.impact.speed if scene.impact is not None else self._two_sphere_collision()
         self.pair_row = np.zeros((n, n), dtype=np.int64)
         rows, self.pairs_, self.constants_by_pair = [], {}, {}
         for a in range(n):
