@@ -68,8 +68,9 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
     "contact": ("open", (
         Key("law", "str", None, "", "contact law, preset or alias (`minidem laws` lists them); required "
             "unless the law is composed of parts (`normal = ...`)"),
-        Key("normal", "str", None, "", "normal part (e.g. \"hertz\", \"hooke\"): compose the law of parts "
-            "instead of naming one; with a preset `law`, replaces the preset's part"),
+        Key("normal", "str", None, "", "normal part (e.g. \"hertz\", \"hooke\"; adhesive \"jkr\", \"dmt\" with "
+            "`surface_energy` in J/m^2): compose the law of parts instead of naming one; with a preset `law`, "
+            "replaces the preset's part"),
         Key("damping", "str", None, "", "damping part (e.g. \"tsuji\", \"viscous\") or \"none\""),
         Key("tangential", "str", None, "", "tangential part (e.g. \"mindlin\", \"linear_history\") or \"none\""),
         Key("rolling", "str", None, "", "rolling-resistance part (e.g. \"epsd\", \"constant_torque\") or \"none\""),
