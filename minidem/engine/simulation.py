@@ -955,15 +955,12 @@ class _RunLoop:
         elif sim.pairs or state.meshes[0].shape[0]:
             sim.rebuild(state)
         try:
-            # the one compilation of this kernel, reported against the law that caused it
-            if self.resume_from is None:
-                # zero-length step: initial forces (dt = 0, so no displacement increments)
-                # and the closing kick (of zero), no drift; advance with dt = 0 and the
-                # step's drift marked done, since calling compute_forces from Python
-                # would compile it a second time
-                self.call(0, 1, True, self.no_trace, dt=0.0, stop_at_separation=False)
-            else:
-                self.call(loop["steps"], 0, False, self.no_trace)  # changes nothing: the resumed state is untouched
+            # the one compilation of this kernel (numba compiles on the first call), reported
+            # against the law that caused it; a user waiting for it is told what it is
+            compiling = _notice_if_slow(sim.notify, f"compiling the kernel of law '{sim.law.name}' for this scene "
+                                        f"shape; it is cached in {cache_directory()} for later runs")
+            with compiling:
+                self.first_call()
         except numba.core.errors.NumbaError as exc:
             raise laws.LawError(f"law '{sim.law.name}' from plugin '{sim.entry.plugin}' "
                                 f"({sim.entry.distribution}): {force_problem(sim.law, exc)}") from exc
@@ -979,6 +976,19 @@ class _RunLoop:
         # the run loop, and the energy samples and trace chunks kept, at the end of the last
         # chunk that passed the checks
         self.mark_checked()
+
+    def first_call(self):
+        """The first compiled call: the initial forces, or the resumed state checked."""
+        if self.resume_from is None:
+            # zero-length step: initial forces (dt = 0, so no displacement increments)
+            # and the closing kick (of zero), no drift; advance with dt = 0 and the
+            # step's drift marked done, since calling compute_forces from Python
+            # would compile it a second time
+            self.call(0, 1, True, self.no_trace, dt=0.0, stop_at_separation=False)
+        else:
+            self.call(self.loop["steps"], 0, False, self.no_trace)  # changes nothing: the resumed state is untouched
+        # the guard's compiled check too: wall_time is the loop's alone
+        self.guard.check(self.state, self.start_time, 0.0)
 
     # -- the last good state, checkpoints and failures ---------------------------
     def mark_checked(self):
@@ -1103,7 +1113,6 @@ class _RunLoop:
     def run(self) -> RunResult:
         sim, state, loop, policy = self.sim, self.state, self.loop, self.policy
         self.start()
-        self.guard.check(state, self.start_time, 0.0)  # compiled (or loaded) now: wall_time is the loop's alone
         started = wallclock.perf_counter()
         last_checkpoint_wall = started
         separated, completing = False, False
