@@ -531,12 +531,9 @@ def _contact_law(contact: dict, material_index: dict, raw_materials: dict, error
             if chosen:
                 preset = registry.preset_of(entry)
                 if preset is None:
-                    raise laws.LawError(
-                        f"'{entry.law.name}' is a single law (normal, damping and tangential in one part): it takes "
-                        f"no {' or '.join(chosen)} part. Compose the law of parts instead (normal = ..., "
-                        f"damping = ..., tangential = ...; `minidem laws` lists them), or drop "
-                        f"{', '.join('contact.' + k for k in chosen)}")
-                entry = registry.combination({**preset.parts, **chosen}, preset.parameters)
+                    entry = registry.law_with_parts(entry, chosen)
+                else:
+                    entry = registry.combination({**preset.parts, **chosen}, preset.parameters)
         elif chosen:
             if "normal" not in chosen:
                 raise laws.LawError("a law composed of parts needs a normal part: normal = \"hertz\" or \"hooke\" "
