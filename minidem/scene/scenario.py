@@ -70,8 +70,11 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
             "instead of naming one; with a preset `law`, replaces the preset's part"),
         Key("damping", "str", None, "", "damping part (e.g. \"tsuji\", \"viscous\") or \"none\""),
         Key("tangential", "str", None, "", "tangential part (e.g. \"mindlin\", \"linear_history\") or \"none\""),
-        Key("rolling", "str", None, "", "rolling-resistance part (e.g. \"epsd\", \"constant_torque\") or \"none\""),
-        Key("twisting", "str", None, "", "twisting-resistance part (e.g. \"marshall\") or \"none\""),
+        Key("rolling", "str", None, "", "rolling-resistance part (\"epsd\", \"sds_rolling\", \"constant_torque\") "
+            "or \"none\"; with a combination of parts or with a paper law (`law = \"hm\"`, which takes a rolling "
+            "and a twisting part but no other)"),
+        Key("twisting", "str", None, "", "twisting-resistance part (\"marshall\", \"sds_twisting\") or \"none\"; "
+            "as `rolling`"),
         Key("pairs", "table", None, "", "per-material-pair parameter values: `[contact.pairs.\"beads/steel\"]` "
             "friction = 0.5 (the two material names joined by '/', either order)"),
     ), "The contact law and its parameters (friction included): a law or preset by name (`law = "
