@@ -577,7 +577,7 @@ def test_walls_vtu_names_each_surfaces_walls_table(tmp_path):
 
     from minidem.results.vtk import SimulationFrames
 
-    scene = scenario.load_scene(SETTLE.parent / "hopper.toml", ["run.end_time=0.001"], tmp_path)
+    scene = scenario.load_scene(SETTLE.parents[1] / "hopper.toml", ["run.end_time=0.001"], tmp_path)
     frames = SimulationFrames(simulation.Simulation(scene), tmp_path)
     frames.close()
     grid = meshio.read(tmp_path / "walls.vtu")
