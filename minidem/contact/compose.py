@@ -90,17 +90,7 @@ def compose(parts: tuple[laws.ContactPart, ...], origins, defaults: Mapping[str,
     def prepare(pair, params):
         prepared: dict[str, dict] = {}
         out = {}
-        for part in parts:
-            values = {p.name: params.get(p.name) for p in part.parameters}
-            produced = part.prepare(pair, values, dict(prepared))
-            if not isinstance(produced, Mapping):
-                raise laws.LawError(f"part '{part.name}': prepare() must return a dict of constants, "
-                                    f"got {type(produced).__name__}")
-            missing = [c for c in part.constants if c not in produced]
-            if missing:
-                raise laws.LawError(f"part '{part.name}': prepare() did not return constants {missing}")
-            prepared[part.kind] = {c: float(produced[c]) for c in part.constants}
-            out.update({f"{part.kind}.{c}": v for c, v in prepared[part.kind].items()})
+        _prepare_parts(parts, pair, params, prepared, out)
         return out
 
     def contact_time(pair, named, effective_radius, effective_mass, normal_speed):
@@ -134,17 +124,26 @@ def compose(parts: tuple[laws.ContactPart, ...], origins, defaults: Mapping[str,
     )
 
 
+def _prepare_parts(parts, pair, params, prepared: dict, out: dict) -> None:
+    """Run each part's prepare in order (each sees what the kinds before it prepared, in
+    ``prepared``) and put its constants into ``out`` as ``kind.name``."""
+    for part in parts:
+        values = {p.name: params.get(p.name) for p in part.parameters}
+        produced = part.prepare(pair, values, dict(prepared))
+        if not isinstance(produced, Mapping):
+            raise laws.LawError(f"part '{part.name}': prepare() must return a dict of constants, "
+                                f"got {type(produced).__name__}")
+        missing = [c for c in part.constants if c not in produced]
+        if missing:
+            raise laws.LawError(f"part '{part.name}': prepare() did not return constants {missing}")
+        prepared[part.kind] = {c: float(produced[c]) for c in part.constants}
+        out.update({f"{part.kind}.{c}": v for c, v in prepared[part.kind].items()})
+
+
 def _generated_force(parts: tuple[laws.ContactPart, ...]):
     """Write (once) and import the module holding the combination's force function."""
     lines, imports = [], []
-    constant_at, history_at = 0, 0
-    call = {}
-    for part in parts:
-        module, attribute = laws.import_name(part.function, "function")
-        imports.append(f"from {module} import {attribute} as {part.kind}_part")
-        c_end, h_end = constant_at + len(part.constants), history_at + part.history_size
-        call[part.kind] = (f"constants[{constant_at}:{c_end}]", f"history[{history_at}:{h_end}]")
-        constant_at, history_at = c_end, h_end
+    call = _part_calls(parts, imports, 0, 0)
     lines.append("    elastic, stiffness, contact_radius = normal_part(\n"
                  f"        {call['normal'][0]}, effective_radius, effective_mass, normal_overlap, "
                  f"normal_overlap_increment, {call['normal'][1]})")
@@ -163,6 +162,19 @@ def _generated_force(parts: tuple[laws.ContactPart, ...]):
     _couple_lines(call, lines, imports)
     lines.append("    return normal_force, ftx, fty, ftz" + (", mx, my, mz" if couples else ""))
     return _load_force([p.name for p in parts], [p.function for p in parts], imports, lines, couples)
+
+
+def _part_calls(parts, imports: list, constant_at: int, history_at: int) -> dict:
+    """kind -> (its constants slice, its history slice) as generated source, the parts laid
+    side by side from the given offsets; appends each part's import to ``imports``."""
+    call = {}
+    for part in parts:
+        module, attribute = laws.import_name(part.function, "function")
+        imports.append(f"from {module} import {attribute} as {part.kind}_part")
+        c_end, h_end = constant_at + len(part.constants), history_at + part.history_size
+        call[part.kind] = (f"constants[{constant_at}:{c_end}]", f"history[{history_at}:{h_end}]")
+        constant_at, history_at = c_end, h_end
+    return call
 
 
 def _couple_lines(call: dict, lines: list, imports: list) -> None:
@@ -243,14 +255,7 @@ def compose_with_law(law: laws.ContactLaw, normal: laws.ContactPart,
 
     def prepare(pair, params):
         out = dict(law.prepare(pair, {p.name: params.get(p.name) for p in law.parameters}))
-        prepared = {"normal": {c: float(out[c]) for c in normal.constants}}
-        for part in parts:
-            produced = part.prepare(pair, {p.name: params.get(p.name) for p in part.parameters}, dict(prepared))
-            missing = [c for c in part.constants if c not in produced]
-            if missing:
-                raise laws.LawError(f"part '{part.name}': prepare() did not return constants {missing}")
-            prepared[part.kind] = {c: float(produced[c]) for c in part.constants}
-            out.update({f"{part.kind}.{c}": v for c, v in prepared[part.kind].items()})
+        _prepare_parts(parts, pair, params, {"normal": {c: float(out[c]) for c in normal.constants}}, out)
         return out
 
     def own(named):
@@ -265,14 +270,7 @@ def compose_with_law(law: laws.ContactLaw, normal: laws.ContactPart,
     imports = [f"from {module} import {attribute} as law_force"]
     normal_module, normal_attribute = laws.import_name(normal.function, "function")
     imports.append(f"from {normal_module} import {normal_attribute} as normal_part")
-    at_constant, at_history = len(law.constants), law.history_size
-    call = {}
-    for part in parts:
-        part_module, part_attribute = laws.import_name(part.function, "function")
-        imports.append(f"from {part_module} import {part_attribute} as {part.kind}_part")
-        c_end, h_end = at_constant + len(part.constants), at_history + part.history_size
-        call[part.kind] = (f"constants[{at_constant}:{c_end}]", f"history[{at_history}:{h_end}]")
-        at_constant, at_history = c_end, h_end
+    call = _part_calls(parts, imports, len(law.constants), law.history_size)
     lines = [f"    normal_force, ftx, fty, ftz = law_force(\n        constants[0:{len(law.constants)}], "
              "effective_radius, effective_mass, normal_overlap, normal_overlap_increment, normal_velocity,\n"
              f"        tangential_increment, tangential_velocity, history[0:{law.history_size}])",

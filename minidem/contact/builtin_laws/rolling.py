@@ -118,6 +118,7 @@ def sds_rolling(constants, effective_radius, effective_mass, normal_overlap, con
     return mx, my, mz
 
 
+SDS_ROLLING_CONSTANTS = ("rolling_stiffness", "rolling_viscosity", "rolling_friction")  # its parameters as given
 SDS_ROLLING = ContactPart(
     name="sds_rolling",
     kind="rolling",
@@ -128,11 +129,9 @@ SDS_ROLLING = ContactPart(
                 Parameter("rolling_viscosity", 0.0, "N s/m", "gamma_roll, the rolling dashpot on R* w_r "
                           "(couple gamma_roll R*^2 w_r)", low=0.0),
                 ROLLING_FRICTION),
-    constants=("rolling_stiffness", "rolling_viscosity", "rolling_friction"),
+    constants=SDS_ROLLING_CONSTANTS,
     history=(HistorySlot("rolling_spring_moment", "the spring's couple on the first body (N m)", vector=True),),
-    prepare=lambda pair, params, prepared: {"rolling_stiffness": params["rolling_stiffness"],
-                                            "rolling_viscosity": params["rolling_viscosity"],
-                                            "rolling_friction": params["rolling_friction"]},
+    prepare=lambda pair, params, prepared: {name: params[name] for name in SDS_ROLLING_CONSTANTS},
     function=sds_rolling,
     energy=("store", "dissipate"),
     reference=f"{LAMMPS}, rolling sds; Luding (2008), Granul. Matter 10, 235-246",
@@ -157,6 +156,7 @@ def sds_twisting(constants, effective_radius, effective_mass, normal_overlap, co
     return moment
 
 
+SDS_TWISTING_CONSTANTS = ("twisting_stiffness", "twisting_viscosity", "twisting_friction")  # as given
 SDS_TWISTING = ContactPart(
     name="sds_twisting",
     kind="twisting",
@@ -168,11 +168,9 @@ SDS_TWISTING = ContactPart(
                 Parameter("twisting_friction", None, "m", "mu_tw: the twisting couple is at most mu_tw Fn (a "
                           "length, as LAMMPS' twisting sds; Coulomb friction over a contact disc of radius a "
                           "gives 2/3 mu a)", low=0.0, required=True)),
-    constants=("twisting_stiffness", "twisting_viscosity", "twisting_friction"),
+    constants=SDS_TWISTING_CONSTANTS,
     history=(HistorySlot("twisting_spring_moment", "the spring's couple about the normal on the first body (N m)"),),
-    prepare=lambda pair, params, prepared: {"twisting_stiffness": params["twisting_stiffness"],
-                                            "twisting_viscosity": params["twisting_viscosity"],
-                                            "twisting_friction": params["twisting_friction"]},
+    prepare=lambda pair, params, prepared: {name: params[name] for name in SDS_TWISTING_CONSTANTS},
     function=sds_twisting,
     energy=("store", "dissipate"),
     reference=f"{LAMMPS}, twisting sds; Luding (2008), Granul. Matter 10, 235-246",
