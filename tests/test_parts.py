@@ -135,6 +135,10 @@ def test_a_paper_law_without_couples_is_that_law_itself():
     assert combined.couples and combined.constants[:len(hm.law.constants)] == hm.law.constants
     assert combined.history[:len(hm.law.history)] == hm.law.history
     assert registry.entry("ls+sds_rolling+sds_twisting").law.name == "ls+sds_rolling+sds_twisting"
+    # a part added to a combination or to a law with parts, as [contact] law = ... with rolling = ...
+    assert registry.with_parts(registry.entry("hertz+tsuji+mindlin"), {"rolling": "epsd"}).law.name \
+        == "hertz+tsuji+mindlin+epsd"
+    assert registry.with_parts(registry.entry("hm+epsd"), {"twisting": "marshall"}).law.name == "hm+epsd+marshall"
 
 
 @pytest.mark.parametrize("contact, expected", [

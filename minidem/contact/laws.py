@@ -516,6 +516,19 @@ class LawRegistry:
                                                     " + ".join(v for _, v in dists))
         return self._combinations[key]
 
+    def with_parts(self, entry: RegisteredLaw, choice: Mapping[str, str]) -> RegisteredLaw:
+        """``entry`` (from ``entry()``) with the parts ``choice`` (kind -> part name) added
+        or replaced: a preset's or a combination's parts, or a law's rolling and twisting."""
+        preset = self.preset_of(entry)
+        if preset is not None:
+            return self.combination({**preset.parts, **choice}, preset.parameters)
+        own = {part.kind: part.name for part in entry.law.parts}
+        if "normal" in own:  # a combination of parts
+            return self.combination({**own, **choice})
+        if own:  # a law with rolling or twisting parts (law+part...)
+            return self.law_with_parts(self.entry(entry.law.name.split("+")[0]), {**own, **choice})
+        return self.law_with_parts(entry, choice)
+
     def law_with_parts(self, entry: RegisteredLaw, choice: Mapping[str, str]) -> RegisteredLaw:
         """A law (one part covering normal, damping and tangential) with a rolling and/or
         a twisting part (``choice``: kind -> part name), composed once per process and

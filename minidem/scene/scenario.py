@@ -532,11 +532,7 @@ def _contact_law(contact: dict, material_index: dict, raw_materials: dict, error
         if isinstance(values.get("law"), str):
             entry = registry.entry(values["law"])
             if chosen:
-                preset = registry.preset_of(entry)
-                if preset is None:
-                    entry = registry.law_with_parts(entry, chosen)
-                else:
-                    entry = registry.combination({**preset.parts, **chosen}, preset.parameters)
+                entry = registry.with_parts(entry, chosen)
         elif chosen:
             if "normal" not in chosen:
                 raise laws.LawError("a law composed of parts needs a normal part: normal = \"hertz\" or \"hooke\" "
