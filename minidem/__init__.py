@@ -16,3 +16,25 @@ stage.
 __version__ = "0.1.0"
 
 from minidem.contact.hookspecs import hookimpl  # noqa: E402,F401  (the decorator plugin authors use)
+
+# The Python API (docs/python-api.md), loaded on first use: `import minidem` stays as light
+# as a plugin or a sweep worker needs (no numba until something is compiled or run).
+_API = {
+    "Scenario": "minidem.api", "Result": "minidem.api", "SweepTable": "minidem.api", "load": "minidem.api",
+    "run": "minidem.api", "sweep": "minidem.api", "open_results": "minidem.api",
+    "MinidemError": "minidem.errors", "ScenarioError": "minidem.scene.scenario", "LawError": "minidem.contact.laws",
+    "RunFailure": "minidem.engine.simulation", "OutputError": "minidem.files",
+}
+__all__ = ["hookimpl", "__version__", *_API]
+
+
+def __getattr__(name: str):
+    if name in _API:
+        import importlib
+
+        return getattr(importlib.import_module(_API[name]), name)
+    raise AttributeError(f"module 'minidem' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_API))

@@ -1,4 +1,5 @@
-"""Command line: ``minidem run``, ``minidem laws``, ``minidem docs``.
+"""Command line: ``minidem run``, ``minidem laws``, ``minidem verify``, ``minidem docs``, ``minidem render``,
+``minidem bench``.
 
 Exit codes: 0 success, 2 bad input (scenario, law or option), 1 failure during the run.
 A Python traceback is shown only with ``--debug``.
@@ -67,8 +68,7 @@ def print_summary(summary: dict, out=None) -> None:
 
 
 def command_run(args) -> int:
-    from minidem.results import analysis
-    from minidem import files
+    from minidem.results.output import write_run_files
     from minidem.scene import scenario
     from minidem.engine import simulation
     from minidem.studies import sweep
@@ -122,12 +122,7 @@ def command_run(args) -> int:
             signal.signal(signal.SIGTERM, previous_sigterm)
             if frames is not None:
                 frames.close()
-    summary = analysis.summary(result)
-    files.write_json(directory / "summary.json", summary)
-    if result.trace is not None:
-        from minidem.engine.kernel import TRACE_COLUMNS
-
-        files.write_csv(directory / "trace.csv", TRACE_COLUMNS, result.trace.tolist())
+    summary = write_run_files(directory, result)
     if args.quiet:  # --quiet keeps the warnings (docs/cli.md), on standard error
         for warning in summary["warnings"]:
             print(f"minidem: warning: {warning}", file=sys.stderr)
@@ -268,6 +263,22 @@ def command_verify(args) -> int:
     return EXIT_FAILURE if any(c.passed is False for c in checks) else EXIT_OK
 
 
+def command_render(args) -> int:
+    from minidem.results import render
+
+    try:
+        written = render.render(args.directory, args.array, args.out, args.animation, args.frame, args.fps)
+    except render.NoRenderWindow as exc:
+        print(f"minidem: render failed: {exc}", file=sys.stderr)
+        return EXIT_FAILURE
+    except render.RenderError as exc:
+        print(f"minidem: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    for path in written:
+        print(f"  wrote {path}")
+    return EXIT_OK
+
+
 def build_parser() -> argparse.ArgumentParser:
     from minidem import __version__
 
@@ -311,6 +322,18 @@ def build_parser() -> argparse.ArgumentParser:
     docs = sub.add_parser("docs", help="print the scenario-file reference (markdown)")
     docs.add_argument("--write", type=Path, help="write it to this file instead")
     docs.set_defaults(handler=command_docs)
+
+    draw = sub.add_parser("render", help="draw a run's particle series (OUT/particles.pvd) to a PNG and a GIF")
+    draw.add_argument("directory", type=Path, metavar="OUT", help="output directory of a `minidem run` with VTK output")
+    draw.add_argument("--array", default="velocity",
+                      help="particle array to colour by (a vector by its magnitude): radius, velocity, "
+                      "angular_velocity, force, particle_id, material_id (default velocity)")
+    draw.add_argument("--out", type=Path, default=None, metavar="FILE.png", help="the picture (default OUT/render.png)")
+    draw.add_argument("--frame", type=int, default=-1, help="frame of the series drawn to the PNG (default -1: the last)")
+    draw.add_argument("--animation", default=None, metavar="FILE.gif",
+                      help="the series as a GIF (default OUT/render.gif when it has more than one frame; '' for none)")
+    draw.add_argument("--fps", type=float, default=10.0, help="frames per second of the GIF (default 10)")
+    draw.set_defaults(handler=command_render)
 
     bench = sub.add_parser("bench", help="measure error against the reference solution and run time; "
                            "writes docs/benchmarks.md and docs/figures/")

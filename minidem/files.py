@@ -10,12 +10,14 @@ import json
 import os
 from pathlib import Path
 
+from minidem.errors import MinidemError
 
-class OutputError(OSError):
+
+class OutputError(MinidemError, OSError):
     """A result file could not be written (disk full, quota, permissions, a vanished
     directory): the CLI names the file and exits with code 1. The temporary file is gone
     and the file's previous version, if any, is untouched. An OSError still (code that
-    catches those keeps working), whose message names the file."""
+    catches those keeps working), and a MinidemError, whose message names the file."""
 
 
 def output_error(path, exc: OSError) -> OutputError:

@@ -31,6 +31,7 @@ from typing import Any, Callable, Mapping
 import pluggy
 
 from minidem.contact import hookspecs
+from minidem.errors import MinidemError
 
 ENTRY_POINT_GROUP = hookspecs.PROJECT_NAME
 _NAME_PATTERN = re.compile(r"^[a-z][a-z0-9_]*$")
@@ -112,8 +113,9 @@ class ContactPair:
     a contact change from contact to contact in a polydisperse scene, so the engine
     passes them to the force function. Laws that calibrate a constant from a size and a
     speed (the linear spring, eq 28) use ``reference_radius``/``reference_mass`` (the
-    effective values of the scene's typical contact: the impact sphere on its wall, or
-    two mean particles) and ``reference_speed`` (the [impact] speed; None without one).
+    effective values of the scene's typical contact: the impact sphere on its wall, the
+    pair of a two-sphere collision, or two mean particles) and ``reference_speed`` (the
+    [impact] speed, or the two spheres' approach speed; None without one).
     """
 
     effective_modulus: float  # E*, Pa: 1/E* = (1-nu1^2)/E1 + (1-nu2^2)/E2
@@ -388,7 +390,7 @@ class Preset:
     reference: str = ""
 
 
-class LawError(Exception):
+class LawError(MinidemError):
     """A law is unknown, broken, or its declaration or constants are invalid."""
 
 

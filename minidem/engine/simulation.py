@@ -31,6 +31,7 @@ import numpy as np
 from minidem import __version__
 from minidem.contact import laws
 from minidem.engine import integrate, kernel
+from minidem.errors import MinidemError
 from minidem.geometry import neighbours, primitives
 from minidem.scene import derived
 from minidem.scene.scenario import Scene, ScenarioError
@@ -136,7 +137,7 @@ class LoopThreads:
         return max(self.steps, key=self.steps.get) if self.steps else self.current
 
 
-class RunFailure(Exception):
+class RunFailure(MinidemError):
     """The run started but could not finish: the CLI exits with code 1."""
 
 
@@ -492,14 +493,29 @@ class Simulation:
         scene = self.scene
         if scene.impact is not None:
             return float(scene.radius[0]), float(scene.mass[0])
+        if self._two_sphere_collision() is not None:
+            # the one contact there will be: its effective radius and mass
+            r, m = scene.radius, scene.mass
+            return float(r[0] * r[1] / (r[0] + r[1])), float(m[0] * m[1] / (m[0] + m[1]))
         return float(scene.radius.mean()), float(scene.mass.mean())
+
+    def _two_sphere_collision(self) -> float | None:
+        """The normal approach speed of a scene of two spheres, no walls and no gravity,
+        that move towards each other (Chung & Ooi tests 1, 7, 8): the reference speed of
+        laws calibrated from one (the linear spring's eq 28), as an [impact] speed is."""
+        scene = self.scene
+        if scene.impact is not None or scene.n_particles != 2 or scene.has_walls or np.any(scene.gravity != 0.0):
+            return None
+        n = scene.position[0] - scene.position[1]
+        speed = -float((scene.velocity[0] - scene.velocity[1]) @ n) / float(np.linalg.norm(n))
+        return speed if speed > 0.0 else None
 
     def _prepare_constants(self) -> None:
         scene, law = self.scene, self.law
         materials = scene.materials
         n = len(materials)
         radius, mass = self._reference_size()
-        speed = scene.impact.speed if scene.impact is not None else None
+        speed = scene.impact.speed if scene.impact is not None else self._two_sphere_collision()
         self.pair_row = np.zeros((n, n), dtype=np.int64)
         rows, self.pairs_, self.constants_by_pair = [], {}, {}
         for a in range(n):
@@ -749,7 +765,7 @@ class Simulation:
         # every parallel loop, the neighbour-list builds too, runs on the particle loops' count
         numba.set_num_threads(loop_threads)
         try:
-            return self._run(scene, k, chunk_steps, progress, on_frame, loop_threads, checkpoints, resume_from)
+            return _RunLoop(self, chunk_steps, progress, on_frame, loop_threads, checkpoints, resume_from).run()
         finally:
             numba.set_num_threads(threads_before)
 
@@ -787,285 +803,6 @@ class Simulation:
             suggestion, why = self.dt / 10.0, "a tenth of the current one"
         return f"try run.dt = {suggestion:.3g} s ({why}; now {self.dt:.3g} s, {self.dt_reason})"
 
-    def _run(self, scene, k, chunk_steps, progress, on_frame, threads, policy, resume_from) -> RunResult:
-        from minidem.engine import blowup
-        from minidem.engine import checkpoint
-
-        state = self.state = State(self)
-        probe_wall = scene.impact.wall if scene.impact is not None else (0 if scene.wall_point.shape[0] else -1)
-        probe = np.zeros(8)
-        stats = np.array([-1.0, -1.0, 0.0, 0.0, 0.0])
-        status = np.zeros(4, dtype=np.int64)
-        tracking = (probe_wall, probe, stats, status)
-        stop_at_separation = scene.stop == "separation"
-        end_time = self.end_time
-        if not math.isfinite(end_time):
-            raise ScenarioError(f"{scene.source}: run.end_time is needed: the scene has no contact to stop at")
-        start_time = self.start_time  # > 0 after an analytic flight to first touch
-        total_steps = max(0, int(math.ceil((end_time - start_time) / self.dt - 1e-9)))
-        half_skin_squared = (0.5 * self.skin) ** 2
-        inertia = scene.inertia
-        no_trace = np.zeros((0, len(kernel.TRACE_COLUMNS)))
-        guard = blowup.Guard(self)
-        frame_interval = self.frame_interval(end_time)
-        frames_on = on_frame is not None and bool(frame_interval)
-        saves_series = frames_on and hasattr(on_frame, "checkpoint_state")
-        # The schedule is a function of the step number alone (never of wall time or of
-        # where a previous process stopped), so a resumed run samples, writes frames and
-        # checkpoints exactly where an uninterrupted one does. Kinetic energy: at least
-        # 200 samples a run, and at every frame.
-        sample_steps = max(1, int(math.ceil(end_time / 200.0 / self.dt - 1e-9)))
-        checkpoint_steps = (max(1, int(round(policy.interval / self.dt)))
-                            if policy is not None and policy.interval else None)
-        # The last good state (restored and written on a blow-up, and the checkpoint of a
-        # Ctrl-C) is copied after a check has passed, at most every snapshot_steps, so
-        # that copying it costs under ~1 % of the steps in between whatever the scene size.
-        # (with particle-steps alone, N = 20,000 copied every 10 steps, i.e. every chunk:
-        # 0.45 s of a 7.4 s run, jitter, 4,000 steps, two threads)
-        snapshot_steps = max(SNAPSHOT_STEPS, SNAPSHOT_PARTICLE_STEPS // max(1, scene.n_particles))
-
-        # After an analytic flight the steps start at first touch: the flight's frames
-        # (t = 0, interval, ... before the touch) are written from the closed form, and
-        # the stepped frames follow every interval from the touch.
-        flight_frames = (int(math.ceil(start_time / frame_interval - 1e-9))
-                         if frames_on and start_time > 0.0 else 0)
-
-        def frame_step(index):
-            return int(round((index - flight_frames) * frame_interval / self.dt))
-
-        loop_threads = LoopThreads(threads)
-
-        def call(start_step, n_steps, completing, trace, threads=None):
-            threads = threads or loop_threads.current
-            # every parallel loop of the chunk (the opening kick_drift too) on that many
-            numba.set_num_threads(threads)
-            return k.advance(state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
-                             scene.gravity, state.position_at_build, half_skin_squared, self.dt, start_time, start_step,
-                             n_steps, completing, stop_at_separation, trace, tracking, threads)
-
-        # loop: the run loop's own state, saved with the arrays in every checkpoint
-        loop = {"steps": 0, "frames": 0, "last_frame_step": -1, "gravity_work_max": 0.0}
-        energy, trace_chunks = [], []
-        if resume_from is not None:
-            arrays, meta = resume_from
-            state.restore(arrays)
-            probe[:], stats[:], status[:] = arrays["probe"], arrays["stats"], arrays["status"]
-            loop.update({key: meta["loop"][key] for key in loop})
-            energy = [(float(t), float(e)) for t, e in arrays["energy"]]
-            if scene.trace and arrays["trace"].shape[0]:
-                trace_chunks.append(arrays["trace"])
-            if saves_series:
-                on_frame.restore(meta["frames_series"], loop["frames"])
-        elif self.pairs or state.meshes[0].shape[0]:
-            self.rebuild(state)
-        try:
-            # the one compilation of this kernel, reported against the law that caused it
-            if resume_from is None:
-                # zero-length step: initial forces (dt = 0, so no displacement increments)
-                # and the closing kick (of zero), no drift; advance with dt = 0 and the
-                # step's drift marked done, since calling compute_forces from Python
-                # would compile it a second time
-                k.advance(state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
-                          scene.gravity, state.position_at_build, half_skin_squared, 0.0, start_time, 0, 1, True,
-                          False, no_trace, tracking, threads)
-            else:
-                call(loop["steps"], 0, False, no_trace)  # changes nothing: the resumed state is untouched
-        except numba.core.errors.NumbaError as exc:
-            raise laws.LawError(f"law '{self.law.name}' from plugin '{self.entry.plugin}' "
-                                f"({self.entry.distribution}): {force_problem(self.law, exc)}") from exc
-        if resume_from is None:
-            energy.append((start_time, state.kinetic_energy(inertia)))
-            if frames_on:
-                if flight_frames:
-                    self._write_flight_frames(state, flight_frames, frame_interval, on_frame)
-                on_frame(start_time, state)
-                loop["frames"], loop["last_frame_step"] = flight_frames + 1, 0
-        fingerprint = checkpoint.fingerprint(self) if policy is not None else None
-
-        def snapshot(reuse=None):
-            """The state now, for checkpoints and as the last good state; ``reuse``: an
-            older snapshot, overwritten in place (one copy of the state, not two). The
-            arrays and the loop's bookkeeping are recorded together with SIGINT/SIGTERM
-            held, so an interrupt never finds them from two different steps."""
-            with _interrupts_deferred():
-                snap = {} if reuse is None else reuse
-                snap["arrays"] = state.capture(into=reuse["arrays"] if reuse else None)
-                snap.update(tracking=(probe.copy(), stats.copy(), status.copy()), loop=dict(loop),
-                            energy=len(energy), trace=len(trace_chunks))
-            return snap
-
-        def write_state(name, snap, kind):
-            arrays = dict(snap["arrays"])
-            arrays["probe"], arrays["stats"], arrays["status"] = snap["tracking"]
-            arrays["energy"] = np.array(energy[:snap["energy"]], dtype=np.float64).reshape(-1, 2)
-            arrays["trace"] = np.concatenate(trace_chunks[:snap["trace"]]) if snap["trace"] else no_trace
-            series = on_frame.checkpoint_state() if saves_series else None
-            if series is not None:  # only the frames written up to the snapshot
-                series = {key: value[:snap["loop"]["frames"]] for key, value in series.items()}
-            step = snap["loop"]["steps"]
-            meta = {"kind": kind, "source": scene.source, "minidem": __version__, "kernel": k.__name__,
-                    "law": self.law.name, "law_package": f"{self.entry.distribution} {self.entry.version}",
-                    "fingerprint": fingerprint, "dt": self.dt, "step": step, "time": start_time + step * self.dt,
-                    "total_steps": total_steps, "loop": snap["loop"], "frames_series": series}
-            return checkpoint.write(Path(policy.directory) / name, arrays, meta)
-
-        good = snapshot()
-        # the run loop, and the energy samples and trace chunks kept, at the end of the last
-        # chunk that passed the checks
-        checked, checked_counts = dict(loop), (len(energy), len(trace_chunks))
-
-        def fail(message, suggestion=None):
-            """Stop: go back to the last state that passed the checks, write it, raise RunFailure.
-
-            That state is rebuilt from the last copy (``good``) by replaying the steps
-            in between: runs are deterministic, so the replay gives it bit for bit."""
-            state.restore(good["arrays"])
-            for live, saved in zip((probe, stats, status), good["tracking"]):
-                live[:] = saved
-            step, completing = good["loop"]["steps"], False
-            while step < checked["steps"] and status[0] == kernel.OK:
-                taken, needs_rebuild = call(step, checked["steps"] - step, completing, no_trace)
-                step, completing = step + taken, False
-                if needs_rebuild:
-                    self.rebuild(state)
-                    completing = True
-            last_good = snapshot()
-            last_good["loop"] = dict(checked)
-            last_good["energy"], last_good["trace"] = checked_counts
-            good_step = checked["steps"]
-            written = []
-            if policy is not None:
-                written.append(str(write_state(checkpoint.LAST_GOOD, last_good, "last good")))
-            if frames_on and checked["last_frame_step"] != good_step:
-                on_frame(start_time + good_step * self.dt, state)
-                written.append("the last VTK frame")
-            where = f", written to {' and '.join(written)}" if written else ""
-            advice = suggestion or self.suggested_time_step()
-            raise RunFailure(f"{message}. {advice[0].upper()}{advice[1:]}. Last good state: step {good_step} "
-                             f"(t = {start_time + good_step * self.dt:.6g} s){where}")
-
-        def check(step):
-            at_time = start_time + step * self.dt
-            fault, loop["gravity_work_max"] = guard.check(state, at_time, loop["gravity_work_max"])
-            if fault is not None:
-                touching = blowup.contacts_of(state, fault.particle)
-                fail(f"blow-up ({fault.what}) at step {step} (t = {at_time:.6g} s): {fault.detail}; "
-                     f"particle {fault.particle} touches " + (", ".join(touching) if touching else "nothing"))
-
-        guard.check(state, start_time, 0.0)  # compiled (or loaded) now: wall_time is the loop's alone
-        started = wallclock.perf_counter()
-        last_checkpoint_wall = started
-        separated, completing = False, False
-        copied_wall, copy_seconds = started, 0.0
-        chunk_goal = min(chunk_steps, 100)  # grown to about 0.2 s of wall time per chunk
-        try:
-            while loop["steps"] < total_steps:
-                steps = loop["steps"]
-                goal = min(total_steps, (steps // sample_steps + 1) * sample_steps, steps + chunk_goal)
-                if frames_on:
-                    goal = min(goal, max(steps + 1, frame_step(loop["frames"])))
-                if checkpoint_steps:
-                    goal = min(goal, (steps // checkpoint_steps + 1) * checkpoint_steps)
-                chunk = goal - steps
-                chunk_threads = loop_threads.choose()
-                probing = chunk_threads != loop_threads.current
-                if probing:  # it only has to time the other count: a short chunk does
-                    chunk = min(chunk, max(2 * LoopThreads.MIN_STEPS, chunk // LoopThreads.PROBE_FRACTION))
-                trace = np.zeros((chunk, len(kernel.TRACE_COLUMNS))) if scene.trace else no_trace
-                chunk_started = wallclock.perf_counter()
-                # compiled code never sees a signal before it returns anyway: held, a
-                # Ctrl-C is delivered here after the call, never inside numba's dispatcher
-                # (which then returned 'a result with an exception set', a SystemError)
-                with _interrupts_deferred():
-                    taken, needs_rebuild = call(steps, chunk, completing, trace, chunk_threads)
-                loop_threads.record(chunk_threads, taken, wallclock.perf_counter() - chunk_started)
-                if scene.trace:
-                    trace_chunks.append(trace[:taken])
-                steps = loop["steps"] = steps + taken
-                completing = False
-                if status[0] != kernel.OK:
-                    fail(self._fault_message(status, steps),
-                         None if status[0] != kernel.NON_FINITE_FORCE else
-                         "A law's force must be finite at every overlap > 0 and speed; if this one is, the time "
-                         f"step may be too large: {self.suggested_time_step()}")
-                if needs_rebuild:
-                    # mid-step (drifted, forces pending): a runaway particle must not
-                    # reach the neighbour grid
-                    check(steps + 1)
-                    self.rebuild(state)
-                    completing = True  # the next call completes the step from its forces
-                    continue
-                if taken == chunk and not probing and wallclock.perf_counter() - chunk_started < 0.1:
-                    chunk_goal = min(chunk_steps, chunk_goal * 2)
-                now = start_time + steps * self.dt
-                check(steps)
-                # stop_at_separation: the last contact ended (the kernel returns early, or
-                # it ended on the chunk's last step, which must not cost one more step)
-                separating = stop_at_separation and (taken < chunk or (
-                    stats[kernel.FIRST_CONTACT_TIME] >= 0.0 and state.count_contacts() == 0))
-                at_frame = frames_on and steps >= frame_step(loop["frames"])
-                if steps % sample_steps == 0 or steps == total_steps or at_frame or separating:
-                    energy.append((now, state.kinetic_energy(inertia)))
-                if at_frame:
-                    on_frame(now, state)
-                    loop["frames"] += 1
-                    loop["last_frame_step"] = steps
-                checked, checked_counts = dict(loop), (len(energy), len(trace_chunks))
-                if progress is not None:
-                    progress(steps, total_steps, state.count_contacts())
-                checkpoint_due = policy is not None and not separating and steps < total_steps and (
-                    (checkpoint_steps and steps % checkpoint_steps == 0)
-                    or (policy.wall_interval and wallclock.perf_counter() - last_checkpoint_wall
-                        >= policy.wall_interval))
-                now_wall = wallclock.perf_counter()
-                if checkpoint_due or (steps - good["loop"]["steps"] >= snapshot_steps
-                                      and now_wall - copied_wall >= SNAPSHOT_COST_RATIO * copy_seconds):
-                    # after the checks: the state overwriting the last good one is good
-                    good = snapshot(good)
-                    copied_wall = wallclock.perf_counter()
-                    copy_seconds = copied_wall - now_wall
-                if checkpoint_due:
-                    write_state(checkpoint.CHECKPOINT, good, "checkpoint")
-                    last_checkpoint_wall = wallclock.perf_counter()
-                if separating:
-                    separated = True
-                    break
-        except (KeyboardInterrupt, SystemError) as exc:
-            # Ctrl-C (or SIGTERM through the CLI) between chunks: keep what was done. A
-            # SystemError caused by a Ctrl-C (one that reached the dispatcher of a compiled
-            # function from another thread) is the same interrupt.
-            if not interrupted(exc):
-                raise
-            if policy is not None:
-                with _interrupts_deferred():  # a second Ctrl-C must not tear this checkpoint
-                    written = write_state(checkpoint.CHECKPOINT, good, "checkpoint")
-                    self.interrupted_at = (start_time + good["loop"]["steps"] * self.dt, written)
-            if isinstance(exc, KeyboardInterrupt):
-                raise
-            raise KeyboardInterrupt from exc
-        if frames_on and loop["last_frame_step"] != loop["steps"]:
-            # the state the run ends in is always a frame (also when the output interval
-            # does not divide the run, or exceeds it): ParaView's last frame is the result
-            on_frame(start_time + loop["steps"] * self.dt, state)
-            loop["frames"] += 1
-            loop["last_frame_step"] = loop["steps"]
-        wall_time = wallclock.perf_counter() - started
-        if policy is not None:
-            write_state(checkpoint.FINAL_STATE, snapshot(), "final")
-            Path(policy.path).unlink(missing_ok=True)  # the run is complete: nothing to resume
-        steps = loop["steps"]
-        return RunResult(
-            scene=scene, law=self.law, constants=self.constants_by_pair, position=state.position,
-            velocity=state.velocity, angular_velocity=state.angular_velocity, initial_velocity=scene.velocity,
-            initial_angular_velocity=scene.angular_velocity, steps=steps, dt=self.dt, dt_reason=self.dt_reason,
-            time=start_time + steps * self.dt, separated=separated, first_contact_time=stats[0], last_separation_time=stats[1],
-            max_overlap=stats[2], peak_normal_force=stats[3], peak_tangential_force=stats[4], wall_time=wall_time,
-            trace=np.concatenate(trace_chunks) if trace_chunks else None, force=state.force, torque=state.torque,
-            contacts=state.count_contacts(), neighbour_builds=state.builds, threads=loop_threads.most_used(),
-            thread_steps=dict(loop_threads.steps),
-            energy=np.array(energy), contact_statistics=not self.parallel, gravity_work_max=loop["gravity_work_max"],
-        )
-
     def _fault_message(self, status, steps) -> str:
         """What the kernel stopped for (status codes of minidem.engine.kernel)."""
         code, particle, partner, kind = (int(x) for x in status)
@@ -1090,6 +827,340 @@ class Simulation:
         if code == kernel.TUNNELLED:
             return f"particle {particle} passed through {what} {when}: the time step is too large"
         return f"run stopped with status {code} {when}"
+
+
+class _RunLoop:
+    """One run of a :class:`Simulation`: the time loop in chunks of compiled steps, with
+    its schedule (energy samples, VTK frames, checkpoints, copies of the last good
+    state), the checks between chunks, and what a failure or an interrupt leaves behind.
+
+    The schedule is a function of the step number alone (never of wall time or of where
+    a previous process stopped), so a resumed run samples, writes frames and checkpoints
+    exactly where an uninterrupted one does."""
+
+    def __init__(self, sim, chunk_steps, progress, on_frame, threads, policy, resume_from):
+        from minidem.engine import blowup, checkpoint
+
+        self.sim, self.scene, self.kernel = sim, sim.scene, sim.kernel
+        self.blowup, self.checkpoint = blowup, checkpoint
+        self.chunk_steps, self.progress, self.on_frame, self.policy = chunk_steps, progress, on_frame, policy
+        scene = self.scene
+        self.state = sim.state = State(sim)
+        probe_wall = scene.impact.wall if scene.impact is not None else (0 if scene.wall_point.shape[0] else -1)
+        self.probe = np.zeros(8)
+        self.stats = np.array([-1.0, -1.0, 0.0, 0.0, 0.0])
+        self.status = np.zeros(4, dtype=np.int64)
+        self.tracking = (probe_wall, self.probe, self.stats, self.status)
+        self.stop_at_separation = scene.stop == "separation"
+        end_time = sim.end_time
+        if not math.isfinite(end_time):
+            raise ScenarioError(f"{scene.source}: run.end_time is needed: the scene has no contact to stop at")
+        self.start_time = sim.start_time  # > 0 after an analytic flight to first touch
+        self.total_steps = max(0, int(math.ceil((end_time - self.start_time) / sim.dt - 1e-9)))
+        self.half_skin_squared = (0.5 * sim.skin) ** 2
+        self.no_trace = np.zeros((0, len(kernel.TRACE_COLUMNS)))
+        self.guard = blowup.Guard(sim)
+        self.frame_interval = sim.frame_interval(end_time)
+        self.frames_on = on_frame is not None and bool(self.frame_interval)
+        self.saves_series = self.frames_on and hasattr(on_frame, "checkpoint_state")
+        # Kinetic energy: at least 200 samples a run, and at every frame.
+        self.sample_steps = max(1, int(math.ceil(end_time / 200.0 / sim.dt - 1e-9)))
+        self.checkpoint_steps = (max(1, int(round(policy.interval / sim.dt)))
+                                 if policy is not None and policy.interval else None)
+        # The last good state (restored and written on a blow-up, and the checkpoint of a
+        # Ctrl-C) is copied after a check has passed, at most every snapshot_steps, so
+        # that copying it costs under ~1 % of the steps in between whatever the scene size.
+        # (with particle-steps alone, N = 20,000 copied every 10 steps, i.e. every chunk:
+        # 0.45 s of a 7.4 s run, jitter, 4,000 steps, two threads)
+        self.snapshot_steps = max(SNAPSHOT_STEPS, SNAPSHOT_PARTICLE_STEPS // max(1, scene.n_particles))
+        # After an analytic flight the steps start at first touch: the flight's frames
+        # (t = 0, interval, ... before the touch) are written from the closed form, and
+        # the stepped frames follow every interval from the touch.
+        self.flight_frames = (int(math.ceil(self.start_time / self.frame_interval - 1e-9))
+                              if self.frames_on and self.start_time > 0.0 else 0)
+        self.loop_threads = LoopThreads(threads)
+        # loop: the run loop's own state, saved with the arrays in every checkpoint
+        self.loop = {"steps": 0, "frames": 0, "last_frame_step": -1, "gravity_work_max": 0.0}
+        self.energy, self.trace_chunks = [], []
+        self.resume_from = resume_from
+
+    # -- the compiled steps ------------------------------------------------------
+    def frame_step(self, index):
+        return int(round((index - self.flight_frames) * self.frame_interval / self.sim.dt))
+
+    def call(self, start_step, n_steps, completing, trace, threads=None, dt=None, stop_at_separation=None):
+        """``n_steps`` compiled steps from ``start_step``; returns (steps taken, whether the
+        neighbour list must be rebuilt first)."""
+        state, sim = self.state, self.sim
+        threads = threads or self.loop_threads.current
+        # every parallel loop of the chunk (the opening kick_drift too) on that many
+        numba.set_num_threads(threads)
+        return self.kernel.advance(
+            state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
+            self.scene.gravity, state.position_at_build, self.half_skin_squared, sim.dt if dt is None else dt,
+            self.start_time, start_step, n_steps, completing,
+            self.stop_at_separation if stop_at_separation is None else stop_at_separation, trace, self.tracking,
+            threads)
+
+    def start(self):
+        """The state at the first step: fresh (initial forces) or the checkpoint resumed."""
+        sim, state, loop = self.sim, self.state, self.loop
+        if self.resume_from is not None:
+            arrays, meta = self.resume_from
+            state.restore(arrays)
+            self.probe[:], self.stats[:], self.status[:] = arrays["probe"], arrays["stats"], arrays["status"]
+            loop.update({key: meta["loop"][key] for key in loop})
+            self.energy = [(float(t), float(e)) for t, e in arrays["energy"]]
+            if self.scene.trace and arrays["trace"].shape[0]:
+                self.trace_chunks.append(arrays["trace"])
+            if self.saves_series:
+                self.on_frame.restore(meta["frames_series"], loop["frames"])
+        elif sim.pairs or state.meshes[0].shape[0]:
+            sim.rebuild(state)
+        try:
+            # the one compilation of this kernel, reported against the law that caused it
+            if self.resume_from is None:
+                # zero-length step: initial forces (dt = 0, so no displacement increments)
+                # and the closing kick (of zero), no drift; advance with dt = 0 and the
+                # step's drift marked done, since calling compute_forces from Python
+                # would compile it a second time
+                self.call(0, 1, True, self.no_trace, dt=0.0, stop_at_separation=False)
+            else:
+                self.call(loop["steps"], 0, False, self.no_trace)  # changes nothing: the resumed state is untouched
+        except numba.core.errors.NumbaError as exc:
+            raise laws.LawError(f"law '{sim.law.name}' from plugin '{sim.entry.plugin}' "
+                                f"({sim.entry.distribution}): {force_problem(sim.law, exc)}") from exc
+        if self.resume_from is None:
+            self.energy.append((self.start_time, state.kinetic_energy(self.scene.inertia)))
+            if self.frames_on:
+                if self.flight_frames:
+                    sim._write_flight_frames(state, self.flight_frames, self.frame_interval, self.on_frame)
+                self.on_frame(self.start_time, state)
+                loop["frames"], loop["last_frame_step"] = self.flight_frames + 1, 0
+        self.fingerprint = self.checkpoint.fingerprint(sim) if self.policy is not None else None
+        self.good = self.snapshot()
+        # the run loop, and the energy samples and trace chunks kept, at the end of the last
+        # chunk that passed the checks
+        self.mark_checked()
+
+    # -- the last good state, checkpoints and failures ---------------------------
+    def mark_checked(self):
+        self.checked, self.checked_counts = dict(self.loop), (len(self.energy), len(self.trace_chunks))
+
+    def snapshot(self, reuse=None):
+        """The state now, for checkpoints and as the last good state; ``reuse``: an
+        older snapshot, overwritten in place (one copy of the state, not two). The
+        arrays and the loop's bookkeeping are recorded together with SIGINT/SIGTERM
+        held, so an interrupt never finds them from two different steps."""
+        with _interrupts_deferred():
+            snap = {} if reuse is None else reuse
+            snap["arrays"] = self.state.capture(into=reuse["arrays"] if reuse else None)
+            snap.update(tracking=(self.probe.copy(), self.stats.copy(), self.status.copy()), loop=dict(self.loop),
+                        energy=len(self.energy), trace=len(self.trace_chunks))
+        return snap
+
+    def write_state(self, name, snap, kind):
+        sim = self.sim
+        arrays = dict(snap["arrays"])
+        arrays["probe"], arrays["stats"], arrays["status"] = snap["tracking"]
+        arrays["energy"] = np.array(self.energy[:snap["energy"]], dtype=np.float64).reshape(-1, 2)
+        arrays["trace"] = np.concatenate(self.trace_chunks[:snap["trace"]]) if snap["trace"] else self.no_trace
+        series = self.on_frame.checkpoint_state() if self.saves_series else None
+        if series is not None:  # only the frames written up to the snapshot
+            series = {key: value[:snap["loop"]["frames"]] for key, value in series.items()}
+        step = snap["loop"]["steps"]
+        meta = {"kind": kind, "source": self.scene.source, "minidem": __version__, "kernel": self.kernel.__name__,
+                "law": sim.law.name, "law_package": f"{sim.entry.distribution} {sim.entry.version}",
+                "fingerprint": self.fingerprint, "dt": sim.dt, "step": step, "time": self.start_time + step * sim.dt,
+                "total_steps": self.total_steps, "loop": snap["loop"], "frames_series": series}
+        return self.checkpoint.write(Path(self.policy.directory) / name, arrays, meta)
+
+    def fail(self, message, suggestion=None):
+        """Stop: go back to the last state that passed the checks, write it, raise RunFailure.
+
+        That state is rebuilt from the last copy (``good``) by replaying the steps
+        in between: runs are deterministic, so the replay gives it bit for bit."""
+        sim, state, good, checked = self.sim, self.state, self.good, self.checked
+        state.restore(good["arrays"])
+        for live, saved in zip((self.probe, self.stats, self.status), good["tracking"]):
+            live[:] = saved
+        step, completing = good["loop"]["steps"], False
+        while step < checked["steps"] and self.status[0] == kernel.OK:
+            taken, needs_rebuild = self.call(step, checked["steps"] - step, completing, self.no_trace)
+            step, completing = step + taken, False
+            if needs_rebuild:
+                sim.rebuild(state)
+                completing = True
+        last_good = self.snapshot()
+        last_good["loop"] = dict(checked)
+        last_good["energy"], last_good["trace"] = self.checked_counts
+        good_step = checked["steps"]
+        written = []
+        if self.policy is not None:
+            written.append(str(self.write_state(self.checkpoint.LAST_GOOD, last_good, "last good")))
+        if self.frames_on and checked["last_frame_step"] != good_step:
+            self.on_frame(self.start_time + good_step * sim.dt, state)
+            written.append("the last VTK frame")
+        where = f", written to {' and '.join(written)}" if written else ""
+        advice = suggestion or sim.suggested_time_step()
+        raise RunFailure(f"{message}. {advice[0].upper()}{advice[1:]}. Last good state: step {good_step} "
+                         f"(t = {self.start_time + good_step * sim.dt:.6g} s){where}")
+
+    def check(self, step):
+        """The blow-up guard between chunks (see :mod:`minidem.engine.blowup`)."""
+        at_time = self.start_time + step * self.sim.dt
+        fault, self.loop["gravity_work_max"] = self.guard.check(self.state, at_time, self.loop["gravity_work_max"])
+        if fault is not None:
+            touching = self.blowup.contacts_of(self.state, fault.particle)
+            self.fail(f"blow-up ({fault.what}) at step {step} (t = {at_time:.6g} s): {fault.detail}; "
+                      f"particle {fault.particle} touches " + (", ".join(touching) if touching else "nothing"))
+
+    def check_status(self, steps):
+        """A fault the kernel stopped for (a non-finite force, a sphere through a wall)."""
+        status, sim = self.status, self.sim
+        if status[0] != kernel.OK:
+            self.fail(sim._fault_message(status, steps),
+                      None if status[0] != kernel.NON_FINITE_FORCE else
+                      "A law's force must be finite at every overlap > 0 and speed; if this one is, the time "
+                      f"step may be too large: {sim.suggested_time_step()}")
+
+    # -- the loop ----------------------------------------------------------------
+    def next_chunk(self, chunk_goal):
+        """(steps, threads, probing) of the next chunk: up to the next energy sample,
+        frame or checkpoint, at most ``chunk_goal`` steps; a probe of the other thread
+        count runs a short chunk, since it only has to time it."""
+        steps, loop = self.loop["steps"], self.loop
+        goal = min(self.total_steps, (steps // self.sample_steps + 1) * self.sample_steps, steps + chunk_goal)
+        if self.frames_on:
+            goal = min(goal, max(steps + 1, self.frame_step(loop["frames"])))
+        if self.checkpoint_steps:
+            goal = min(goal, (steps // self.checkpoint_steps + 1) * self.checkpoint_steps)
+        chunk = goal - steps
+        chunk_threads = self.loop_threads.choose()
+        probing = chunk_threads != self.loop_threads.current
+        if probing:
+            chunk = min(chunk, max(2 * LoopThreads.MIN_STEPS, chunk // LoopThreads.PROBE_FRACTION))
+        return chunk, chunk_threads, probing
+
+    def record(self, steps, taken, chunk):
+        """After a chunk that passed the checks: energy sample, frame, progress; returns
+        whether the run stops here at separation."""
+        state, loop, stats = self.state, self.loop, self.stats
+        now = self.start_time + steps * self.sim.dt
+        # stop_at_separation: the last contact ended (the kernel returns early, or
+        # it ended on the chunk's last step, which must not cost one more step)
+        separating = self.stop_at_separation and (taken < chunk or (
+            stats[kernel.FIRST_CONTACT_TIME] >= 0.0 and state.count_contacts() == 0))
+        at_frame = self.frames_on and steps >= self.frame_step(loop["frames"])
+        if steps % self.sample_steps == 0 or steps == self.total_steps or at_frame or separating:
+            self.energy.append((now, state.kinetic_energy(self.scene.inertia)))
+        if at_frame:
+            self.on_frame(now, state)
+            loop["frames"] += 1
+            loop["last_frame_step"] = steps
+        self.mark_checked()
+        if self.progress is not None:
+            self.progress(steps, self.total_steps, state.count_contacts())
+        return separating
+
+    def run(self) -> RunResult:
+        sim, state, loop, policy = self.sim, self.state, self.loop, self.policy
+        self.start()
+        self.guard.check(state, self.start_time, 0.0)  # compiled (or loaded) now: wall_time is the loop's alone
+        started = wallclock.perf_counter()
+        last_checkpoint_wall = started
+        separated, completing = False, False
+        copied_wall, copy_seconds = started, 0.0
+        chunk_goal = min(self.chunk_steps, 100)  # grown to about 0.2 s of wall time per chunk
+        try:
+            while loop["steps"] < self.total_steps:
+                steps = loop["steps"]
+                chunk, chunk_threads, probing = self.next_chunk(chunk_goal)
+                trace = np.zeros((chunk, len(kernel.TRACE_COLUMNS))) if self.scene.trace else self.no_trace
+                chunk_started = wallclock.perf_counter()
+                # compiled code never sees a signal before it returns anyway: held, a
+                # Ctrl-C is delivered here after the call, never inside numba's dispatcher
+                # (which then returned 'a result with an exception set', a SystemError)
+                with _interrupts_deferred():
+                    taken, needs_rebuild = self.call(steps, chunk, completing, trace, chunk_threads)
+                self.loop_threads.record(chunk_threads, taken, wallclock.perf_counter() - chunk_started)
+                if self.scene.trace:
+                    self.trace_chunks.append(trace[:taken])
+                steps = loop["steps"] = steps + taken
+                completing = False
+                self.check_status(steps)
+                if needs_rebuild:
+                    # mid-step (drifted, forces pending): a runaway particle must not
+                    # reach the neighbour grid
+                    self.check(steps + 1)
+                    sim.rebuild(state)
+                    completing = True  # the next call completes the step from its forces
+                    continue
+                if taken == chunk and not probing and wallclock.perf_counter() - chunk_started < 0.1:
+                    chunk_goal = min(self.chunk_steps, chunk_goal * 2)
+                self.check(steps)
+                separating = self.record(steps, taken, chunk)
+                checkpoint_due = policy is not None and not separating and steps < self.total_steps and (
+                    (self.checkpoint_steps and steps % self.checkpoint_steps == 0)
+                    or (policy.wall_interval and wallclock.perf_counter() - last_checkpoint_wall
+                        >= policy.wall_interval))
+                now_wall = wallclock.perf_counter()
+                if checkpoint_due or (steps - self.good["loop"]["steps"] >= self.snapshot_steps
+                                      and now_wall - copied_wall >= SNAPSHOT_COST_RATIO * copy_seconds):
+                    # after the checks: the state overwriting the last good one is good
+                    self.good = self.snapshot(self.good)
+                    copied_wall = wallclock.perf_counter()
+                    copy_seconds = copied_wall - now_wall
+                if checkpoint_due:
+                    self.write_state(self.checkpoint.CHECKPOINT, self.good, "checkpoint")
+                    last_checkpoint_wall = wallclock.perf_counter()
+                if separating:
+                    separated = True
+                    break
+        except (KeyboardInterrupt, SystemError) as exc:
+            self.interrupt(exc)
+        if self.frames_on and loop["last_frame_step"] != loop["steps"]:
+            # the state the run ends in is always a frame (also when the output interval
+            # does not divide the run, or exceeds it): ParaView's last frame is the result
+            self.on_frame(self.start_time + loop["steps"] * sim.dt, state)
+            loop["frames"] += 1
+            loop["last_frame_step"] = loop["steps"]
+        wall_time = wallclock.perf_counter() - started
+        if policy is not None:
+            self.write_state(self.checkpoint.FINAL_STATE, self.snapshot(), "final")
+            Path(policy.path).unlink(missing_ok=True)  # the run is complete: nothing to resume
+        return self.result(separated, wall_time)
+
+    def interrupt(self, exc):
+        """Ctrl-C (or SIGTERM through the CLI) between chunks: keep what was done. A
+        SystemError caused by a Ctrl-C (one that reached the dispatcher of a compiled
+        function from another thread) is the same interrupt."""
+        if not interrupted(exc):
+            raise exc
+        if self.policy is not None:
+            with _interrupts_deferred():  # a second Ctrl-C must not tear this checkpoint
+                written = self.write_state(self.checkpoint.CHECKPOINT, self.good, "checkpoint")
+                self.sim.interrupted_at = (self.start_time + self.good["loop"]["steps"] * self.sim.dt, written)
+        if isinstance(exc, KeyboardInterrupt):
+            raise exc
+        raise KeyboardInterrupt from exc
+
+    def result(self, separated, wall_time) -> RunResult:
+        sim, scene, state, stats = self.sim, self.scene, self.state, self.stats
+        steps = self.loop["steps"]
+        return RunResult(
+            scene=scene, law=sim.law, constants=sim.constants_by_pair, position=state.position,
+            velocity=state.velocity, angular_velocity=state.angular_velocity, initial_velocity=scene.velocity,
+            initial_angular_velocity=scene.angular_velocity, steps=steps, dt=sim.dt, dt_reason=sim.dt_reason,
+            time=self.start_time + steps * sim.dt, separated=separated, first_contact_time=stats[0],
+            last_separation_time=stats[1], max_overlap=stats[2], peak_normal_force=stats[3],
+            peak_tangential_force=stats[4], wall_time=wall_time,
+            trace=np.concatenate(self.trace_chunks) if self.trace_chunks else None, force=state.force,
+            torque=state.torque, contacts=state.count_contacts(), neighbour_builds=state.builds,
+            threads=self.loop_threads.most_used(), thread_steps=dict(self.loop_threads.steps),
+            energy=np.array(self.energy), contact_statistics=not sim.parallel,
+            gravity_work_max=self.loop["gravity_work_max"],
+        )
 
 
 @contextlib.contextmanager

@@ -182,6 +182,8 @@ def summary(result: RunResult) -> dict:
         "law_constants": {f"{scene.materials[a].name}/{scene.materials[b].name}": c
                           for (a, b), c in result.constants.items()},
     })
+    if result.first_contact_time >= 0:
+        out.update(collision_measures(result))
     return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in out.items()}
 
 
@@ -229,3 +231,141 @@ def heap_angle_deg(position, radius: float, low: float = 0.2, high: float = 0.8)
         return math.nan
     gradient = np.polyfit(surface_x[slope], surface_z[slope], 1)[0]
     return math.degrees(math.atan(-gradient))
+
+
+# ---------------------------------------------------------------------------------
+# Chung & Ooi (2011) measures: one sphere on its [impact] wall, or two spheres
+# ---------------------------------------------------------------------------------
+def collision_frame(scene, velocity, angular_velocity):
+    """(n, t, partner) of the collision of particle 0: n the unit normal pointing to
+    particle 0 (the [impact] wall's normal, or the line of centres from particle 1),
+    t the unit tangent and partner 1 (None for the wall). For an impact t is the
+    impact's tangent; for two spheres it is the direction of the initial tangential
+    relative velocity of the centres, else of the initial slip of the contact point
+    (spin alone), else any direction normal to n. None when the scene is neither."""
+    if scene.impact is not None:
+        return scene.impact.normal, scene.impact.tangent, None
+    if scene.n_particles != 2 or scene.has_walls:
+        return None
+    n = scene.position[0] - scene.position[1]
+    n = n / np.linalg.norm(n)
+    relative = velocity[0] - velocity[1]
+    slip = (relative + np.cross(angular_velocity[0], -scene.radius[0] * n)
+            - np.cross(angular_velocity[1], scene.radius[1] * n))
+    for candidate in (relative, slip, np.eye(3)[int(np.argmin(np.abs(n)))]):
+        tangential = candidate - np.dot(candidate, n) * n
+        if np.linalg.norm(tangential) > 1e-12 * max(float(np.linalg.norm(candidate)), 1e-300):
+            return n, tangential / np.linalg.norm(tangential), 1
+    raise AssertionError("no tangent for a unit normal")
+
+
+def rigid_body_impact(mass, inertia, radius, velocity, angular_velocity, normal, restitution, friction):
+    """Rigid-body impulse theory of a sphere collision with Coulomb friction (the
+    limits of Chung & Ooi 2011 tests 4-8; Maw, Barber & Fawcett 1976 without the
+    elastic tangential compliance). Arrays hold body 0 and, when their length is 2,
+    body 1; a wall is body 1 absent (infinite mass, at rest). ``normal`` points from
+    body 1 (or the wall) to body 0.
+
+    The normal impulse is Pn = (1 + e) m_n |u_n| with 1/m_n = 1/m0 + 1/m1 and u the
+    relative velocity of the contact points. A tangential impulse P changes the
+    tangential slip by P/m_t, 1/m_t = sum over bodies of 1/m + R^2/I (7/(2m) for a
+    solid sphere on a wall). If stopping the slip needs no more than mu Pn the contact
+    ends rolling (P = m_t |u_t|), else it slides throughout (P = mu Pn): then
+    delta v_t = mu (1 + e) v_n and delta omega = 5/2 mu (1 + e) v_n / R on a wall.
+    Returns (velocity, angular_velocity, sliding) after the impact."""
+    velocity = np.array(velocity, dtype=np.float64).reshape(-1, 3).copy()
+    spin = np.array(angular_velocity, dtype=np.float64).reshape(-1, 3).copy()
+    bodies = velocity.shape[0]
+    n = np.asarray(normal, dtype=np.float64)
+    arm = [-radius[0] * n] + ([radius[1] * n] if bodies > 1 else [])
+    contact = [velocity[b] + np.cross(spin[b], arm[b]) for b in range(bodies)]
+    u = contact[0] - (contact[1] if bodies > 1 else 0.0)
+    u_n = float(u @ n)
+    u_t = u - u_n * n
+    inverse_normal = sum(1.0 / mass[b] for b in range(bodies))
+    inverse_tangential = sum(1.0 / mass[b] + radius[b] ** 2 / inertia[b] for b in range(bodies))
+    normal_impulse = (1.0 + restitution) * max(-u_n, 0.0) / inverse_normal
+    slip = float(np.linalg.norm(u_t))
+    stick = slip / inverse_tangential
+    sliding = stick > friction * normal_impulse
+    tangential = min(stick, friction * normal_impulse)
+    impulse = normal_impulse * n - (tangential * u_t / slip if slip > 0.0 else 0.0)
+    for b, sign in zip(range(bodies), (1.0, -1.0)):
+        velocity[b] += sign * impulse / mass[b]
+        spin[b] += sign * np.cross(arm[b], impulse) / inertia[b]
+    return velocity, spin, bool(sliding)
+
+
+def collision_measures(result: RunResult) -> dict:
+    """Particle 0's rebound in the collision frame (collision_frame), beside the
+    rigid-body impulse theory (rigid_body_impact) with the law's restitution and
+    friction, and the closed-form Hertz limits of the elastic normal impact
+    (hertz_impact): the quantities Chung & Ooi (2011) tabulate and plot. Velocities are
+    of particle 0 relative to its partner's initial velocity, spin is about n x t (the
+    sense of [impact].spin); ``recoil_ratio`` is the tangential slip velocity of the
+    contact point over the normal speed after the impact (their V'st/V'cn).
+    Empty for scenes that are not one collision."""
+    scene = result.scene
+    frame = collision_frame(scene, result.initial_velocity, result.initial_angular_velocity)
+    if frame is None:
+        return {}
+    n, t, partner = frame
+    bodies = [0] if partner is None else [0, partner]
+    axis = np.cross(n, t)
+    params = scene.law_parameters
+    restitution = float(params.get("restitution", 1.0) or 1.0)
+    friction = float(params.get("friction", 0.0) or 0.0)
+    radius = scene.radius[bodies]
+    theory_v, theory_w, sliding = rigid_body_impact(scene.mass[bodies], scene.inertia[bodies], radius,
+                                                   result.initial_velocity[bodies],
+                                                   result.initial_angular_velocity[bodies], n, restitution,
+                                                   friction)
+    reference = result.initial_velocity[partner] if partner is not None else np.zeros(3)
+
+    def measures(velocity, spin, prefix):
+        relative = velocity[0] - (velocity[1] if partner is not None else 0.0)
+        slip = relative + np.cross(spin[0], -radius[0] * n) - (
+            np.cross(spin[1], radius[1] * n) if partner is not None else 0.0)
+        normal_out = float(relative @ n)
+        return {
+            f"{prefix}tangential_velocity_m_s": float((velocity[0] - reference) @ t),
+            f"{prefix}spin_rad_s": float(spin[0] @ axis),
+            f"{prefix}rebound_angle_deg": math.degrees(math.atan2(float(relative @ t), normal_out)),
+            f"{prefix}recoil_ratio": float(slip @ t) / normal_out if normal_out > 0.0 else math.nan,
+        }
+
+    out = measures(result.velocity[bodies], result.angular_velocity[bodies], "")
+    out.update(measures(theory_v, theory_w, "rigid_"))
+    out["rigid_sliding"] = sliding
+    out.update(hertz_impact(scene, result.initial_velocity, n, partner))
+    return out
+
+
+def hertz_impact(scene, velocity, normal, partner) -> dict:
+    """Closed-form elastic Hertz normal impact of particle 0 on its partner (or wall) at
+    the initial normal approach speed v (Chung & Ooi 2011, tests 1-3; Johnson 1985):
+    alpha_max = (15 m* v^2 / (16 E* sqrt(R*)))^(2/5), F_max = 4/3 E* sqrt(R*)
+    alpha_max^(3/2), t_c = 2.868 (m*^2 / (R* E*^2 v))^(1/5)."""
+    from minidem.contact.laws import ContactPair
+
+    materials = scene.materials
+    first = materials[scene.particle_material[0]]
+    if partner is None:
+        other = materials[scene.wall_material[scene.impact.wall]]
+        r_star, m_star = float(scene.radius[0]), float(scene.mass[0])
+        speed = -float(velocity[0] @ normal)
+    else:
+        other = materials[scene.particle_material[partner]]
+        r0, r1, m0, m1 = scene.radius[0], scene.radius[partner], scene.mass[0], scene.mass[partner]
+        r_star, m_star = float(r0 * r1 / (r0 + r1)), float(m0 * m1 / (m0 + m1))
+        speed = -float((velocity[0] - velocity[partner]) @ normal)
+    if speed <= 0.0:
+        return {}
+    e_star = ContactPair.from_materials(first, other, r_star, m_star).effective_modulus
+    overlap = (15.0 * m_star * speed**2 / (16.0 * e_star * math.sqrt(r_star))) ** 0.4
+    # t_c = 2 (alpha_max / v) int_0^1 dx / sqrt(1 - x^(5/2)) = (4/5) B(2/5, 1/2) alpha_max / v,
+    # exact (eq 13's 2.868 is this rounded)
+    beta = math.gamma(0.4) * math.gamma(0.5) / math.gamma(0.9)
+    return {"hertz_max_overlap_m": overlap,
+            "hertz_peak_force_n": 4.0 / 3.0 * e_star * math.sqrt(r_star) * overlap**1.5,
+            "hertz_contact_time_s": 0.8 * beta * overlap / speed}

@@ -20,8 +20,10 @@ from typing import Any
 
 import numpy as np
 
+from minidem.errors import MinidemError
 
-class ScenarioError(Exception):
+
+class ScenarioError(MinidemError):
     """Bad input: the CLI prints the message and exits with code 2."""
 
 
@@ -134,9 +136,14 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
     "impact": ("table", (
         Key("material", "str", REQUIRED, "", "material of the sphere"),
         Key("radius", "float", REQUIRED, "m", "sphere radius", low=0.0, low_open=True),
-        Key("speed", "float", REQUIRED, "m/s", "impact speed Vi", low=0.0, low_open=True),
+        Key("speed", "float", None, "m/s", "impact speed Vi (required unless normal_speed is given)", low=0.0,
+            low_open=True),
         Key("angle_deg", "float", 0.0, "deg", "impact angle from the wall normal", low=0.0, high=90.0,
             high_open=True),
+        Key("normal_speed", "float", None, "m/s", "instead of speed and angle_deg: the approach speed along the "
+            "wall normal (Chung & Ooi's tests at constant normal speed)", low=0.0, low_open=True),
+        Key("tangential_speed", "float", None, "m/s", "with normal_speed: the speed along the tangent; speed "
+            "and angle_deg follow from the two", low=0.0),
         Key("gap", "float", 0.0, "m", "distance from the sphere to the wall at t = 0, travelled at the impact "
             "velocity before first touch (0: touching at t = 0)", low=0.0),
         Key("wall", "int", 0, "-", "index of the wall hit (in the order of [[walls]])", low=0),
@@ -202,13 +209,23 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
             "OUT/traces/case_NNN.csv (as output.trace does for a single run)"),
         Key("figures", "list", ["y1", "y2", "et"], "", 'PNG figures to draw: "y1", "y2" (against x, with '
             'the rigid-body lines of eqs 6-8), "et" (against the angle), "force_displacement" (needs '
-            "keep_traces)"),
+            'keep_traces); Chung & Ooi\'s, against sweep.abscissa: "hertz" (max overlap, peak force, contact '
+            'duration beside Hertz theory), "restitution" (en obtained against requested), "rebound" (rebound '
+            'tangential velocity, spin, rebound angle and recoil ratio beside rigid-body impulse theory), '
+            '"force_time" (normal force against time from the traces of sphere-wall cases; needs keep_traces)'),
         Key("series_labels", "list", None, "", "legend labels, one per combination of the swept keys other "
             "than impact.angle_deg (default: the values)"),
         Key("title", "str", None, "", "figure title"),
+        Key("together", "list", [], "", 'groups of swept keys that vary together instead of forming a product, '
+            'e.g. [["particles.0.angular_velocity.2", "particles.1.angular_velocity.2"]] (both spheres spin '
+            "alike); the lists of a group must be as long as each other"),
+        Key("abscissa", "str", None, "", 'the swept key on the x axis of the "hertz", "restitution" and '
+            '"rebound" figures (default impact.angle_deg); the curves are the other keys\' values'),
     ), "A parameter sweep: `minidem run` runs every case (in parallel: local processes, or a Dask "
        "cluster with `--scheduler`) and writes OUT/sweep.csv (case, law, angle_deg, x, y1, y2, et, en, "
-       "contact_duration_s, energy_ratio, max_overlap_m, steps, dt_s, the swept keys, status, error; the "
+       "contact_duration_s, energy_ratio, max_overlap_m, steps, dt_s, peak_normal_force_n, the collision "
+       "measures of docs/chung-ooi.md when a hertz, restitution or rebound figure is asked for, the swept keys, "
+       "status, error; the "
        "same file for any back end and worker count) and the figures. Finished cases are journalled in "
        "OUT/sweep.journal: running the same command again resumes an interrupted sweep. See "
        "docs/paper-reproduction.md and docs/sweeps-on-a-cluster.md."),
@@ -421,8 +438,10 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
                 except (ValueError, IndexError):
                     raise ScenarioError(f"--set {text!r}: '{'.'.join(path[:depth + 1])}' is not a valid "
                                         f"index (the list has {len(node)} entries)") from None
-                continue
-            node = node.setdefault(part, {})
+            else:
+                node = node.setdefault(part, {})
+            # a list entry or a table's key may hold a value where the path needs a table
+            # (a sweep over particles.1.material of a file whose particles[1] is a number)
             if not isinstance(node, (dict, list)):
                 raise ScenarioError(f"--set {text!r}: '{'.'.join(path[:depth + 1])}' is a value, not a table")
         if isinstance(node, list):
@@ -760,6 +779,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
     if "impact" in data:
         values = _check_table(data["impact"], SCHEMA["impact"][1], "impact", errors)
         wall = values.get("wall")
+        _impact_velocity(data["impact"], values, errors)
         if isinstance(wall, int) and not 0 <= wall < len(wall_normal):
             if not errors.has_under("walls"):  # a bad [[walls]] table is reported already
                 errors.add("impact.wall", f"wall index {wall} does not exist: the scenario has "
@@ -963,6 +983,31 @@ def _fill(table, where, source, errors, material_of, position, velocity, spin, r
     spin.extend(spins)
     radius.extend(radii.tolist())
     particle_material.extend([material] * len(centres))
+
+
+def _impact_velocity(table: dict, values: dict, errors: _Errors) -> None:
+    """[impact] velocity as speed and angle_deg, or as normal_speed and tangential_speed:
+    the second form is turned into the first (values is updated)."""
+    if not isinstance(table, dict):
+        return  # _check_table has said what [impact] should be
+    components = [k for k in ("normal_speed", "tangential_speed") if k in table]
+    if not components:
+        if "speed" not in table:
+            errors.add("impact.speed", "missing required key (impact speed Vi, m/s), or give normal_speed "
+                       "(and tangential_speed) instead")
+        return
+    polar = [k for k in ("speed", "angle_deg") if k in table]
+    if polar:
+        errors.add(f"impact.{components[0]}", f"give either speed and angle_deg or normal_speed and "
+                   f"tangential_speed, not both (the table also has {', '.join(polar)})")
+        return
+    if "normal_speed" not in table:
+        errors.add("impact.normal_speed", "missing: tangential_speed needs normal_speed (m/s, > 0)")
+        return
+    normal, tangential = values.get("normal_speed"), values.get("tangential_speed") or 0.0
+    if isinstance(normal, float) and isinstance(tangential, float):
+        values["speed"] = math.hypot(normal, tangential)
+        values["angle_deg"] = math.degrees(math.atan2(tangential, normal))
 
 
 def _tangent(normal: np.ndarray, given, errors: _Errors):

@@ -8,6 +8,10 @@
   sliding (en = 1).
 * ``force_displacement``: tangential force against tangential displacement of each
   case's trace (Figs 11-12).
+
+and those of Chung & Ooi (2011), against the swept key ``[sweep].abscissa``:
+``hertz`` (tests 1-2), ``restitution`` (test 3), ``rebound`` (tests 4-8) and
+``force_time`` (the traced normal force of sphere-wall cases).
 """
 
 from __future__ import annotations
@@ -26,13 +30,14 @@ MARKERS = "os^vDx+*<>ph"
 
 def _series_of(sweep, rows):
     """[(label, [rows])] in first-seen order of the non-angle swept values."""
+    from minidem.studies.sweep import series_of_case
 
     keys = sweep.series_keys
     positions = [sweep.keys.index(k) for k in keys]
     groups = {s: [] for s in sweep.series()}
     for row, case in zip(rows, sweep.cases):
         if not row.get("error"):
-            groups[tuple(case[p] for p in positions)].append(row)
+            groups[series_of_case(case, positions)].append(row)
     labels = sweep.series_labels or [", ".join(_value_label(k, v) for k, v in zip(keys, s)) or "run"
                                      for s in groups]
     return list(zip(labels, groups.values()))
@@ -150,6 +155,155 @@ def draw(sweep, rows, directory) -> list[Path]:
         if figure == "force_displacement":
             if sweep.keep_traces:
                 written.append(plot_force_displacement(sweep, rows, path))
+        elif figure == "force_time":
+            if sweep.keep_traces:
+                written.append(plot_force_time(sweep, rows, path))
+        elif figure in COLLISION_PLOTS:
+            written.append(COLLISION_PLOTS[figure](sweep, rows, path))
         else:
             written.append(plot_measure(sweep, rows, figure, path, mu))
     return written
+
+
+# ---------------------------------------------------------------------------------
+# Chung & Ooi (2011) figures: rows against the swept key sweep.abscissa
+# ---------------------------------------------------------------------------------
+def _abscissa_series(sweep, rows):
+    """[(label, xs, rows sorted by x)] with x the value of sweep.abscissa of each row."""
+    position = sweep.keys.index(sweep.abscissa)
+    by_case = {row["case"]: row for row in rows}
+    categories = _categories(sweep)
+    out = []
+    for label, group in _series_of(sweep, rows):
+        values = [sweep.cases[row["case"]][position] for row in group]
+        xs = np.array([categories.index(v) if categories else float(v) for v in values], dtype=float)
+        order = np.argsort(xs, kind="stable")
+        out.append((label, xs[order], [by_case[group[k]["case"]] for k in order]))
+    return out
+
+
+def _categories(sweep):
+    """The abscissa's values in first-seen order when they are not numbers (materials,
+    say), drawn at 0, 1, 2...; [] for a numeric abscissa."""
+    position = sweep.keys.index(sweep.abscissa)
+    values = list(dict.fromkeys(case[position] for case in sweep.cases))
+    numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+    return [] if numeric else values
+
+
+def _category_ticks(sweep, ax):
+    categories = _categories(sweep)
+    if categories:
+        ax.set_xticks(range(len(categories)), [str(c) for c in categories])
+        ax.set_xlim(-0.5, len(categories) - 0.5)
+
+
+def _column(group, name):
+    return np.array([np.nan if row.get(name) in (None, "") else float(row[name]) for row in group])
+
+
+def _panels(sweep, rows, path, panels, xlabel):
+    """One subplot per (measure column, theory column or None, label, scale) with every
+    series as markers and its theory as a dashed line of the same colour."""
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4.2), squeeze=False)
+    for ax, (measure, theory, ylabel, scale) in zip(axes[0], panels):
+        drawn = []  # theory curves already drawn: laws that share materials share them
+        series = _abscissa_series(sweep, rows)
+        distinct = [] if theory is None else _distinct_curves(series, theory, scale)
+        for i, (label, xs, group) in enumerate(series):
+            (line,) = ax.plot(xs, _column(group, measure) * scale, marker=MARKERS[i % len(MARKERS)], ms=4, lw=0.8,
+                              label=label)
+            if theory is None:
+                continue
+            curve = _column(group, theory) * scale
+            if any(len(x) == len(xs) and np.allclose(x, xs) and np.allclose(c, curve, equal_nan=True)
+                   for x, c in drawn):
+                continue
+            drawn.append((xs, curve))
+            kind = "Hertz theory" if theory.startswith("hertz") else "rigid-body theory"
+            ax.plot(xs, curve, "--", color=line.get_color() if distinct > 1 else "k", lw=1.0,
+                    label=f"{label}: {kind}" if distinct > 1 else kind)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        _category_ticks(sweep, ax)
+    axes[0][0].legend(fontsize=7)
+    if sweep.title:
+        fig.suptitle(sweep.title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def _distinct_curves(series, theory, scale) -> int:
+    curves = []
+    for _, xs, group in series:
+        curve = _column(group, theory) * scale
+        if not any(len(x) == len(xs) and np.allclose(x, xs) and np.allclose(c, curve, equal_nan=True)
+                   for x, c in curves):
+            curves.append((xs, curve))
+    return len(curves)
+
+
+def _abscissa_label(sweep):
+    """The abscissa's key as a label with its unit from the scenario schema, e.g.
+    "impact.spin (rad/s)", "particles.0.angular_velocity.2 (rad/s)"."""
+    from minidem.scene.scenario import SCHEMA
+
+    parts = sweep.abscissa.split(".")
+    keys = SCHEMA.get(parts[0], (None, ()))[1]
+    names = [p for p in parts[1:] if not p.isdigit()]
+    unit = next((k.unit for k in keys if names and k.name == names[-1]), "")
+    return sweep.abscissa + (f" ({unit})" if unit and unit != "-" else "")
+
+
+def plot_hertz(sweep, rows, path):
+    """Tests 1-2: max overlap, peak force and contact duration beside Hertz theory."""
+    return _panels(sweep, rows, path, [("max_overlap_m", "hertz_max_overlap_m", "max overlap (um)", 1e6),
+                                       ("peak_normal_force_n", "hertz_peak_force_n", "peak normal force (kN)", 1e-3),
+                                       ("contact_duration_s", "hertz_contact_time_s", "contact duration (us)", 1e6)],
+                   _abscissa_label(sweep))
+
+
+def plot_restitution(sweep, rows, path):
+    """Test 3: the restitution obtained against the one requested (the line en = e)."""
+    fig, ax = plt.subplots(figsize=(5.5, 4.8))
+    for i, (label, xs, group) in enumerate(_abscissa_series(sweep, rows)):
+        ax.plot(xs, _column(group, "en"), marker=MARKERS[i % len(MARKERS)], ms=5, lw=0.8, label=label)
+    ax.plot([0, 1], [0, 1], "k--", lw=0.8, label="en = e (requested)")
+    ax.set_xlim(0, 1.02)
+    ax.set_ylim(0, 1.02)
+    return _finish(fig, ax, sweep, path, "requested restitution e", "restitution obtained en")
+
+
+def plot_rebound(sweep, rows, path):
+    """Tests 4-8: particle 0's rebound beside rigid-body impulse theory."""
+    return _panels(sweep, rows, path, [
+        ("tangential_velocity_m_s", "rigid_tangential_velocity_m_s", "rebound tangential velocity (m/s)", 1.0),
+        ("spin_rad_s", "rigid_spin_rad_s", "rebound spin (rad/s)", 1.0),
+        ("rebound_angle_deg", "rigid_rebound_angle_deg", "rebound angle (deg)", 1.0),
+        ("recoil_ratio", "rigid_recoil_ratio", "recoil ratio V'st / V'cn", 1.0)], _abscissa_label(sweep))
+
+
+def plot_force_time(sweep, rows, path):
+    """Tests 2-3: the normal force of each traced sphere-wall case against time from first touch."""
+    directory = Path(path).parent
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    for label, xs, group in _abscissa_series(sweep, rows):
+        for x, row in zip(xs, group):
+            if not row.get("trace_file"):
+                continue
+            trace = np.genfromtxt(directory / row["trace_file"], delimiter=",", names=True)
+            inside = trace["normal_overlap_m"] > 0
+            if not inside.any():
+                continue
+            start = trace["time_s"][inside][0]
+            suffix = f" ({_abscissa_label(sweep)} = {x:g})" if len(group) > 1 else ""
+            ax.plot((trace["time_s"][inside] - start) * 1e6, trace["normal_force_n"][inside], lw=1.2,
+                    label=label + suffix)
+    ax.axhline(0, color="k", lw=0.5)
+    return _finish(fig, ax, sweep, path, "time from first touch (us)", "normal force Fn (N)")
+
+
+COLLISION_PLOTS = {"hertz": plot_hertz, "restitution": plot_restitution, "rebound": plot_rebound}

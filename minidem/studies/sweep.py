@@ -46,10 +46,18 @@ from minidem.scene.scenario import ScenarioError
 # Every column is a function of the case alone (no wall time: that goes to the journal
 # and sweep.json), so that sweep.csv is the same file wherever the cases ran.
 ROW_COLUMNS = ("case", "law", "angle_deg", "x", "y1", "y2", "et", "en", "contact_duration_s", "energy_ratio",
-               "max_overlap_m", "steps", "dt_s")
+               "max_overlap_m", "steps", "dt_s", "peak_normal_force_n")
+# One collision's rebound beside rigid-body impulse theory and the Hertz limits
+# (analysis.collision_measures; Chung & Ooi 2011): written only by sweeps whose figures
+# need them, so other sweeps' tables keep their columns.
+COLLISION_COLUMNS = ("tangential_velocity_m_s", "spin_rad_s", "rebound_angle_deg", "recoil_ratio",
+                     "rigid_tangential_velocity_m_s", "rigid_spin_rad_s", "rigid_rebound_angle_deg",
+                     "rigid_recoil_ratio", "rigid_sliding", "hertz_max_overlap_m", "hertz_peak_force_n",
+                     "hertz_contact_time_s")
 JOURNAL = "sweep.journal"
 JOURNAL_FORMAT = 1
-FIGURES = ("y1", "y2", "et", "force_displacement")
+FIGURES = ("y1", "y2", "et", "force_displacement", "hertz", "restitution", "rebound", "force_time")
+COLLISION_FIGURES = ("hertz", "restitution", "rebound")
 ANGLE_KEY = "impact.angle_deg"
 
 
@@ -64,21 +72,29 @@ class SweepPlan:
     figures: list[str]
     series_labels: list[str] | None
     title: str | None
+    abscissa: str = ANGLE_KEY  # the swept key on the x axis of the Chung & Ooi figures
+    together: tuple = ()  # groups of keys that vary together (one axis of the product)
 
     def overrides(self, index: int) -> list[str]:
         return [f"{key}={_toml_value(value)}" for key, value in zip(self.keys, self.cases[index])]
 
     @property
     def series_keys(self) -> list[str]:
-        """The swept keys that tell the curves of a figure apart (all but the angle)."""
-        return [k for k in self.keys if k != ANGLE_KEY]
+        """The swept keys that tell the curves of a figure apart: all but the abscissa
+        (default the angle) and the keys that vary together with it."""
+        along = next((group for group in self.together if self.abscissa in group), (self.abscissa,))
+        return [k for k in self.keys if k not in along]
+
+    @property
+    def collision_columns(self) -> bool:
+        return any(f in COLLISION_FIGURES for f in self.figures)
 
     def series(self) -> list[tuple]:
         """Distinct values of the series keys, in first-seen order."""
         positions = [self.keys.index(k) for k in self.series_keys]
         seen: dict[tuple, None] = {}
         for case in self.cases:
-            seen.setdefault(tuple(case[p] for p in positions), None)
+            seen.setdefault(series_of_case(case, positions), None)
         return list(seen)
 
     @property
@@ -93,6 +109,10 @@ def _toml_value(value) -> str:
         return "true" if value else "false"
     if isinstance(value, str):
         return json.dumps(value)  # a TOML basic string for the names scenarios use
+    if isinstance(value, dict):  # a whole table, e.g. "contact" = [{law = "ls", ...}, ...]: an inline table
+        return "{" + ", ".join(f"{json.dumps(k)} = {_toml_value(v)}" for k, v in value.items()) + "}"
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
     return repr(value)
 
 
@@ -121,13 +141,14 @@ def plan(data: dict, source: str) -> SweepPlan:
             continue
         keys.append(key)
         columns.append(options)
+    axes, grouped = _axes(keys, columns, values["together"], values["abscissa"], errors)
     unknown = [f for f in values["figures"] if not isinstance(f, str) or f not in FIGURES]
     if unknown:
         errors.add("sweep.figures", f"unknown figure(s) {unknown}; valid: {', '.join(FIGURES)}")
     # a figure that cannot be drawn is refused now, not skipped silently after the run
-    if "force_displacement" in values["figures"] and not values["keep_traces"]:
-        errors.add("sweep.figures", '"force_displacement" plots the cases\' traces: it needs sweep.keep_traces = '
-                   "true")
+    for traced in ("force_displacement", "force_time"):
+        if traced in values["figures"] and not values["keep_traces"]:
+            errors.add("sweep.figures", f'"{traced}" plots the cases\' traces: it needs sweep.keep_traces = true')
     paper = [f for f in values["figures"] if f in ("y1", "y2", "et", "force_displacement")]
     no_impact = "impact" not in data and not any(str(k).split(".")[0] == "impact" for k in cases_table)
     if paper and no_impact and "figures" not in data["sweep"]:
@@ -145,9 +166,14 @@ def plan(data: dict, source: str) -> SweepPlan:
         errors.add("sweep.workers", f"must be >= 0 (0: one per CPU), got {values['workers']}")
     errors.raise_if_any()
     base = {k: v for k, v in data.items() if k != "sweep"}
-    cases = list(itertools.product(*columns))
+    # one axis per key, or per group of keys that vary together; the keys of a case in
+    # axis order
+    keys = [k for axis in axes for k in axis[0]]
+    cases = [tuple(v for picked in product for v in picked)
+             for product in itertools.product(*[list(zip(*axis[1])) for axis in axes])]
     sweep = SweepPlan(source, base, keys, cases, values["workers"], values["keep_traces"],
-                      list(values["figures"]), values.get("series_labels"), values.get("title"))
+                      list(values["figures"]), values.get("series_labels"), values.get("title"),
+                      values["abscissa"] or ANGLE_KEY, grouped)
     if sweep.series_labels is not None and len(sweep.series_labels) != len(sweep.series()):
         errors.add("sweep.series_labels", f"expected {len(sweep.series())} labels (one per combination of "
                    f"{', '.join(sweep.series_keys) or 'nothing'}), got {len(sweep.series_labels)}")
@@ -170,6 +196,47 @@ def plan(data: dict, source: str) -> SweepPlan:
         warnings.warn(message, stacklevel=2)  # once each, not once per case
     errors.raise_if_any()
     return sweep
+
+
+def _axes(keys, columns, together, abscissa, errors) -> tuple[list, tuple]:
+    """[(keys, value lists)] per axis of the product: a key alone, or a [sweep].together
+    group (its keys' lists must be as long as each other) at the place of its first key."""
+    grouped, seen = [], set()
+    for index, group in enumerate(together or []):
+        where = f"sweep.together[{index}]"
+        if not isinstance(group, list) or len(group) < 2 or not all(isinstance(k, str) for k in group):
+            errors.add(where, f"expected a list of two or more swept keys, got {group!r}")
+            continue
+        missing = [k for k in group if k not in keys]
+        if missing:
+            errors.add(where, f"{', '.join(missing)} not in sweep.cases (swept keys: {', '.join(keys)})")
+            continue
+        if seen.intersection(group):
+            errors.add(where, f"{', '.join(sorted(seen.intersection(group)))} already in another group")
+            continue
+        lengths = {k: len(columns[keys.index(k)]) for k in group}
+        if len(set(lengths.values())) > 1:
+            errors.add(where, "the keys of a group vary together, so their lists must be as long as each "
+                       f"other; got {', '.join(f'{k}: {n}' for k, n in lengths.items())}")
+            continue
+        seen.update(group)
+        grouped.append(tuple(group))
+    if abscissa is not None and abscissa not in keys:
+        errors.add("sweep.abscissa", f"{abscissa!r} is not a swept key (swept keys: {', '.join(keys)})")
+    axes, placed = [], set()
+    for key, column in zip(keys, columns):
+        if key in placed:
+            continue
+        group = next((g for g in grouped if key in g), (key,))
+        axes.append((list(group), [columns[keys.index(k)] for k in group]))
+        placed.update(group)
+    return axes, tuple(grouped)
+
+
+def series_of_case(case: tuple, positions: list[int]) -> tuple:
+    """The series a case belongs to: its values of the series keys (a swept table, which
+    is not hashable, as its TOML text)."""
+    return tuple(_toml_value(case[p]) if isinstance(case[p], (dict, list)) else case[p] for p in positions)
 
 
 # ---------------------------------------------------------------------------------
@@ -201,10 +268,7 @@ def code_fingerprint(law_names: tuple[str, ...]) -> str:
 
 
 def _laws_of(sweep: SweepPlan) -> tuple[str, ...]:
-    if "contact.law" in sweep.keys:
-        position = sweep.keys.index("contact.law")
-        return tuple(dict.fromkeys(str(case[position]) for case in sweep.cases))
-    return (str(sweep.base.get("contact", {}).get("law")),)
+    return tuple(dict.fromkeys(str(_law_of(sweep, index)) for index in range(len(sweep.cases))))
 
 
 def plan_hash(sweep: SweepPlan) -> str:
@@ -255,7 +319,7 @@ def run_case(case: Case) -> dict:
         scene.trace = case.trace
         result = simulation.Simulation(scene).run()
         summary = analysis.summary(result)
-        row.update({k: _plain(summary.get(k)) for k in ROW_COLUMNS if k != "case"})
+        row.update({k: _plain(summary.get(k)) for k in ROW_COLUMNS + COLLISION_COLUMNS if k != "case"})
         incomplete = analysis.incomplete_contact(result)
         if incomplete:
             row["status"], row["error"] = "failed", incomplete
@@ -436,15 +500,7 @@ def _run_locked(sweep, directory, progress, workers, executor, restart, echo) ->
         journal.start({"minidem_sweep_journal": JOURNAL_FORMAT, "plan": digest, "cases": n,
                        "source": sweep.source, "keys": sweep.keys})
 
-    laws = _laws_of(sweep)
-    fingerprint = code_fingerprint(laws)
     pending = [i for i in range(n) if i not in done]
-    tasks = [Case(i, sweep.base, tuple(sweep.overrides(i)), sweep.source, sweep.keep_traces, laws, fingerprint)
-             for i in pending]
-    # the first case of each law first and on its own: the workers compile the kernels in parallel
-    first_of_law: dict[Any, int] = {}
-    for position, index in enumerate(pending):
-        first_of_law.setdefault(_law_of(sweep, index), position)
     owned = executor is None
     if executor is None:
         executor = executors.LocalProcesses(workers if workers is not None else sweep.workers)
@@ -453,8 +509,7 @@ def _run_locked(sweep, directory, progress, workers, executor, restart, echo) ->
     started = wallclock.perf_counter()
     try:
         bar = _progress_bar(n, len(done), progress)
-        for position, row in executor.run(run_case, tasks, warm=list(first_of_law.values())):
-            index = pending[position]
+        for index, row in execute(sweep, pending, executor):
             if isinstance(row, executors.Lost):
                 lost[index] = row.reason
                 continue
@@ -481,20 +536,8 @@ def _run_locked(sweep, directory, progress, workers, executor, restart, echo) ->
             f"The {len(done)} finished case(s) are in {journal.path}: run the same command again to run the rest")
 
     rows = [dict(done[i]) for i in range(n)]
-    swept = [k for k in sweep.keys if k not in ("contact.law", ANGLE_KEY)]
-    columns = list(ROW_COLUMNS) + swept + (["trace_file"] if sweep.keep_traces else []) + ["status", "error"]
-    table = []
-    for row, case in zip(rows, sweep.cases):
-        for key, value in zip(sweep.keys, case):
-            if key not in ("contact.law", ANGLE_KEY):
-                row[key] = value
-        # a failed case has no summary: its law and angle come from the plan
-        if row.get("law") is None:
-            row["law"] = _law_of(sweep, row["case"])
-        if row.get("angle_deg") is None:
-            row["angle_deg"] = (case[sweep.keys.index(ANGLE_KEY)] if ANGLE_KEY in sweep.keys
-                                else sweep.base.get("impact", {}).get("angle_deg"))
-        table.append(["" if row.get(c) is None else row.get(c) for c in columns])
+    columns = table_columns(sweep)
+    table = [["" if row.get(c) is None else row.get(c) for c in columns] for row in complete_rows(sweep, rows)]
     files.write_csv(directory / "sweep.csv", columns, table)
     files.write_json(directory / "sweep.json", {
         "scenario": sweep.source, "cases": n, "failed": sum(1 for r in rows if r["status"] != "ok"),
@@ -505,9 +548,51 @@ def _run_locked(sweep, directory, progress, workers, executor, restart, echo) ->
     return rows
 
 
+def execute(sweep: SweepPlan, pending: list[int], executor: executors.Executor):
+    """Run the cases ``pending`` (indices into ``sweep.cases``) on ``executor``; yield
+    (case index, row or :class:`executors.Lost`) as they finish, in any order."""
+    laws = _laws_of(sweep)
+    fingerprint = code_fingerprint(laws)
+    tasks = [Case(i, sweep.base, tuple(sweep.overrides(i)), sweep.source, sweep.keep_traces, laws, fingerprint)
+             for i in pending]
+    # the first case of each law first and on its own: the workers compile the kernels in parallel
+    first_of_law: dict[Any, int] = {}
+    for position, index in enumerate(pending):
+        first_of_law.setdefault(_law_of(sweep, index), position)
+    for position, row in executor.run(run_case, tasks, warm=list(first_of_law.values())):
+        yield pending[position], row
+
+
+def table_columns(sweep: SweepPlan) -> list[str]:
+    """The columns of sweep.csv: ROW_COLUMNS, COLLISION_COLUMNS (when the figures need
+    them), the swept keys other than the law and the angle, trace_file (with
+    keep_traces), status, error."""
+    swept = [k for k in sweep.keys if k not in ("contact.law", ANGLE_KEY)]
+    return (list(ROW_COLUMNS) + (list(COLLISION_COLUMNS) if sweep.collision_columns else []) + swept
+            + (["trace_file"] if sweep.keep_traces else []) + ["status", "error"])
+
+
+def complete_rows(sweep: SweepPlan, rows: list[dict]) -> list[dict]:
+    """The rows (in case order) with the swept values set, and a failed case's law and
+    angle taken from the plan (it has no summary): the rows of sweep.csv. Changes ``rows``."""
+    for row, case in zip(rows, sweep.cases):
+        for key, value in zip(sweep.keys, case):
+            if key not in ("contact.law", ANGLE_KEY):
+                # a swept table (a whole [contact]) or list is one cell, in TOML
+                row[key] = _toml_value(value) if isinstance(value, (dict, list)) else value
+        if row.get("law") is None:
+            row["law"] = _law_of(sweep, row["case"])
+        if row.get("angle_deg") is None:
+            row["angle_deg"] = (case[sweep.keys.index(ANGLE_KEY)] if ANGLE_KEY in sweep.keys
+                                else sweep.base.get("impact", {}).get("angle_deg"))
+    return rows
+
+
 def _law_of(sweep: SweepPlan, index: int):
     if "contact.law" in sweep.keys:
         return sweep.cases[index][sweep.keys.index("contact.law")]
+    if "contact" in sweep.keys:  # whole [contact] tables swept (laws with parameters of their own)
+        return sweep.cases[index][sweep.keys.index("contact")].get("law")
     return sweep.base.get("contact", {}).get("law")
 
 

@@ -1,0 +1,16 @@
+"""The one exception base users catch: every error minidem raises on purpose derives
+from :class:`MinidemError`.
+
+* ``minidem.ScenarioError`` (bad input: a scenario key, a file, an option; the CLI exits 2),
+* ``minidem.LawError`` (an unknown or broken contact law; exit 2),
+* ``minidem.RunFailure`` (the run started and could not finish: a blow-up; exit 1),
+* ``minidem.OutputError`` (a result file could not be written: disk full, permissions; exit 1;
+  an OSError too).
+
+It lives in a module of its own, below every stage, so that each stage can derive its
+error from it without importing another stage.
+"""
+
+
+class MinidemError(Exception):
+    """Base of every error minidem raises on purpose (bad input, a broken law, a failed run)."""
