@@ -105,6 +105,19 @@ def compose(parts: tuple[laws.ContactPart, ...], origins, defaults: Mapping[str,
         kn_default, kt_default = laws.hertz_mindlin_stiffness(pair, effective_radius, normal_overlap)
         return (of(normal, kn_default), of(tangential, kt_default if tangential else 0.0), of(damping, 0.0))
 
+    # beyond touch: the combination lives as far as its farthest-reaching part
+    reaching = [p for p in parts if p.has_reach]
+    reach = None
+    if reaching:
+        def reach(pair, named, effective_radius):
+            return max(p.reach_at(pair, own(named, p), effective_radius) for p in reaching)
+    # energy supplied (adhesion): the parts' bounds add up
+    supplying = [p for p in parts if "supply" in p.energy]
+    supply_bound = None
+    if supplying:
+        def supply_bound(pair, named, effective_radius):
+            return sum(float(p.supply_bound(pair, own(named, p), effective_radius)) for p in supplying)
+
     force = _generated_force(parts)
     couples = "rolling" in by_kind or "twisting" in by_kind
     return laws.ContactLaw(
@@ -121,6 +134,8 @@ def compose(parts: tuple[laws.ContactPart, ...], origins, defaults: Mapping[str,
         stiffness=stiffness,
         couples=couples,
         parts=tuple(parts),
+        reach=reach,
+        supply_bound=supply_bound,
     )
 
 

@@ -196,6 +196,21 @@ class ContactLaw:
     # law's elastic normal force, stiffness and contact radius: what lets a law (one part
     # covering normal, damping and tangential) take a rolling or twisting part
     normal_part: str = ""
+    # a combination with a part acting beyond touch (set by compose): reach(pair, constants,
+    # effective_radius) -> m, the separation (as a positive distance) up to which a contact lives
+    reach: Callable | None = None
+    # a combination with a part that supplies energy (adhesion, set by compose):
+    # supply_bound(pair, constants, effective_radius) -> J, the most kinetic energy one
+    # contact can give its bodies (the energy guard and verify add it per contact)
+    supply_bound: Callable | None = None
+
+    @property
+    def energy_roles(self) -> tuple[str, ...]:
+        """What the law may do to a contact's energy: its parts' roles; a law (no parts)
+        is passive (store and dissipate)."""
+        if not self.parts:
+            return ("store", "dissipate")
+        return tuple(role for role in ENERGY_ROLES if any(role in p.energy for p in self.parts))
 
     @property
     def history_size(self) -> int:
@@ -345,8 +360,22 @@ class ContactPart:
                   for Fn ~ d^1.5, ``"linear"`` for Fn = kn d)
     requires      traits the combination must provide (Tsuji damping maps restitution
                   for a Hertzian spring only: requires ``("hertzian",)``)
-    reach         how far beyond touch (m, as a negative overlap) the part acts; 0: only
-                  while the surfaces overlap
+    reach         how far beyond touch the part acts (m, a separation: the overlap passed
+                  to the part is negative down to -reach); 0: only while the surfaces
+                  overlap. A number, or ``reach(pair, constants, effective_radius) -> m``
+                  when it depends on the pair's constants and R* (JKR's pull-off
+                  separation). The engine evaluates the function once per material pair at
+                  the scene's largest R* (so it must not decrease with R*), widens the
+                  neighbour search and the wall checks by it, and keeps the contact and its
+                  history while the separation is below it; within that a part ends its own
+                  contact at its per-contact separation (it knows R*)
+    supply_bound  parts with the energy role "supply": ``supply_bound(pair, constants,
+                  effective_radius) -> J``, an upper bound of the kinetic energy one contact
+                  can give its bodies (adhesion: the depth of its potential well); the
+                  energy guard and ``minidem verify`` allow it per contact
+    pull_off      adhesive normal parts, optional: ``pull_off(pair, constants,
+                  effective_radius) -> N``, the largest tensile force (JKR 3/2 pi gamma R*);
+                  ``minidem verify`` checks a rebound against it
     contact_time  normal parts: ``contact_time(pair, constants, effective_radius,
                   effective_mass, normal_speed) -> s``, for the automatic time step
     stiffness     normal parts: ``stiffness(pair, constants, R*, m*, overlap) -> kn``;
@@ -365,14 +394,26 @@ class ContactPart:
     energy: tuple[str, ...] = ("store",)
     provides: tuple[str, ...] = ()
     requires: tuple[str, ...] = ()
-    reach: float = 0.0
+    reach: float | Callable = 0.0
     contact_time: Callable | None = None
     stiffness: Callable | None = None
     reference: str = ""
+    supply_bound: Callable | None = None
+    pull_off: Callable | None = None
 
     @property
     def history_size(self) -> int:
         return sum(slot.size for slot in self.history)
+
+    @property
+    def has_reach(self) -> bool:
+        return callable(self.reach) or self.reach > 0.0
+
+    def reach_at(self, pair, constants, effective_radius) -> float:
+        """The part's reach (m) for a pair's constants and R*."""
+        if callable(self.reach):
+            return float(self.reach(pair, constants, effective_radius))
+        return float(self.reach)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -647,8 +688,9 @@ class LawRegistry:
         if isinstance(key, str) and "+" in key:
             first, *rest = key.split("+")
             law = self._owner(first)
-            if law is not None:
+            if law is not None:  # a law with rolling and twisting parts ("hm+epsd")
                 return self.law_with_parts(law, self._choice_of(rest))
+        if isinstance(key, str) and ("+" in key or key in self._parts):  # a combination (of one part: "jkr")
             return self.combination(self._choice_of(key.split("+")))
         preset = self._preset(key)
         if preset is not None:
@@ -757,10 +799,12 @@ def _part_problem(part) -> str | None:
             return f"'{field}' must be a tuple of strings, got {value!r}"
     if not part.energy or not set(part.energy) <= set(ENERGY_ROLES):
         return f"'energy' must name one or more of {', '.join(ENERGY_ROLES)}, got {part.energy!r}"
-    if isinstance(part.reach, bool) or not isinstance(part.reach, numbers.Real) or not 0.0 <= part.reach < math.inf:
-        return f"'reach' must be a distance in m, >= 0 and finite, got {part.reach!r}"
-    if part.reach > 0.0:
-        return "'reach' > 0 (a part acting beyond touch) is not supported by this engine yet"
+    if not callable(part.reach) and (isinstance(part.reach, bool) or not isinstance(part.reach, numbers.Real)
+                                     or not 0.0 <= part.reach < math.inf):
+        return f"'reach' must be a distance in m, >= 0 and finite, or a function of (pair, constants, R*), got {part.reach!r}"
+    if "supply" in part.energy and not callable(part.supply_bound):
+        return ("a part with the energy role 'supply' must declare supply_bound(pair, constants, R*) -> J "
+                "(the energy guard and verify bound what it may give)")
     if part.kind == "normal" and part.contact_time is None:
         return "a normal part must declare contact_time (the automatic time step needs it)"
     return _compiled_function_problem(part.function, "function", PART_ARGUMENTS[part.kind])

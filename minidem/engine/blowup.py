@@ -7,10 +7,13 @@ rebuild, with a few vectorised passes over the particle arrays (no Python per st
 
 * non-finite state: a NaN or infinity in a position, velocity, angular velocity,
   force or torque;
-* energy: the contact laws are passive (they store and dissipate energy, never create
-  it), so the kinetic energy can never exceed the initial kinetic energy plus the work
-  gravity has done, W = sum m_i g.(x_i - x_i(0)) (the scene starts with no stored
-  elastic energy: initial overlaps are refused). A run whose kinetic energy exceeds
+* energy: a contact stores and dissipates energy and, when one of its parts declares
+  the energy role "supply" (adhesion), gives at most that part's ``supply_bound`` (the
+  depth of its potential well) per contact. So the kinetic energy can never exceed the
+  initial kinetic energy plus the work gravity has done, W = sum m_i g.(x_i - x_i(0))
+  (the scene starts with no stored elastic energy: initial overlaps are refused), plus
+  the adhesion budget (the bound per contact times the most contacts the scene can
+  hold, ``Simulation.supply_budget``). A run whose kinetic energy exceeds
   ``ENERGY_FACTOR`` times that budget is unstable;
 * the domain: no particle can be farther from the box spanned by the initial
   particles and the finite walls than a particle carrying the whole energy budget
@@ -62,7 +65,8 @@ class Guard:
                                       + np.dot(self.inertia, np.einsum("ik,ik->i", scene.angular_velocity,
                                                                        scene.angular_velocity)))
         self.floor = 0.5 * float(self.mass.sum()) * sim.characteristic_speed() ** 2
-        self.base_budget = initial_kinetic + self.floor
+        self.base_budget = initial_kinetic + self.floor + sim.supply_budget
+        self.supply_budget = sim.supply_budget
         self.lightest = float(self.mass.min()) if self.mass.size else 1.0
         lower = (scene.position - scene.radius[:, None]).min(axis=0)
         upper = (scene.position + scene.radius[:, None]).max(axis=0)
@@ -100,8 +104,9 @@ class Guard:
             allowed = math.sqrt(2.0 * budget / self.mass[top])
             return Fault("energy", top, (
                 f"the kinetic energy {kinetic:.3g} J is {kinetic / budget:.3g} times the scene's energy budget "
-                f"{budget:.3g} J (initial kinetic energy + work of gravity so far; passive contacts cannot add "
-                f"energy); particle {top} moves at {float(np.linalg.norm(state.velocity[top])):.3g} m/s where "
+                f"{budget:.3g} J (initial kinetic energy + work of gravity so far"
+                + (f" + what adhesion can supply, {self.supply_budget:.3g} J" if self.supply_budget else
+                   "; passive contacts cannot add energy") + f"); particle {top} moves at {float(np.linalg.norm(state.velocity[top])):.3g} m/s where "
                 f"the budget allows at most {allowed:.3g} m/s")), gravity_work_max
         reach = (self.extent + REACH_FACTOR * math.sqrt(2.0 * budget / self.lightest) * time
                  + 0.5 * self.gravity_magnitude * time * time)

@@ -11,6 +11,11 @@ removed by the compiler, so a single impact pays nothing for pairs or meshes):
     SPIN       angular velocities and torques (the law can produce tangential forces)
     COUPLES    the law also takes the relative spin and returns a couple (rolling or
                twisting resistance): applied to i, its opposite to j
+    REACH      the law acts beyond touch (adhesion): a contact lives while its overlap
+               is above -reach, the last column of its constants row (the law sees the
+               negative overlap and ends its own contact within that); the Verlet list
+               is built with the skin plus the largest reach. Without it a contact is
+               an overlap > 0, as always
     PAIRS      sphere-sphere contacts through the Verlet list (more than one particle)
     CYLINDERS  finite cylinder walls
     MESHES     triangle-mesh walls
@@ -72,6 +77,7 @@ from minidem.contact.builtin_laws.linear import linear_force as law_force  # noq
 
 SPIN = True
 COUPLES = False
+REACH = False
 PAIRS = True
 CYLINDERS = True
 MESHES = True
@@ -137,6 +143,16 @@ def note_peaks(stats, overlap, fn, ftx, fty, ftz):
     stats[MAX_OVERLAP] = max(stats[MAX_OVERLAP], overlap)
     stats[PEAK_NORMAL_FORCE] = max(stats[PEAK_NORMAL_FORCE], fn)
     stats[PEAK_TANGENTIAL_FORCE] = max(stats[PEAK_TANGENTIAL_FORCE], math.sqrt(ftx * ftx + fty * fty + ftz * ftz))
+
+
+@numba.njit(cache=True, inline="always")
+def engaged_above(constants, row):
+    """The overlap above which a contact lives: 0, or -reach for a law acting beyond
+    touch (REACH: the last column of its constants row; a compile-time branch, so a law
+    without reach reads nothing and compares with 0 as before)."""
+    if REACH:
+        return -constants[row, constants.shape[1] - 1]
+    return 0.0
 
 
 @numba.njit(cache=True, inline="always")
@@ -307,8 +323,9 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
             wall_overlap[i, w] = overlap
             if TRACK:
                 note_transitions(stats, time, dt, overlap, previous)
-            if overlap <= 0.0:
-                if previous > 0.0:
+            lives_above = engaged_above(constants, pair_row[mat, wall_material[w]])
+            if overlap <= lives_above:
+                if previous > lives_above:
                     wall_history[i, w, :] = 0.0  # contact ends: its history is dropped
                 continue
             if overlap >= ri:
@@ -328,7 +345,8 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 probe[PROBE_DISPLACEMENT] += increment[0]
                 probe[PROBE_DISPLACEMENT + 1] += increment[1]
                 probe[PROBE_DISPLACEMENT + 2] += increment[2]
-        if TRACK and i == 0 and 0 <= probe_wall and wall_overlap[0, probe_wall] <= 0.0:
+        if TRACK and i == 0 and 0 <= probe_wall and wall_overlap[0, probe_wall] <= engaged_above(
+                constants, pair_row[mat, wall_material[probe_wall]]):
             probe[PROBE_OVERLAP], probe[PROBE_FN] = wall_overlap[0, probe_wall], 0.0
             probe[PROBE_FT], probe[PROBE_FT + 1], probe[PROBE_FT + 2] = 0.0, 0.0, 0.0
 
@@ -339,8 +357,9 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 cylinder_overlap_prev[i, c] = overlap
                 if TRACK:
                     note_transitions(stats, time, dt, overlap, previous)
-                if overlap <= 0.0 or overlap >= ri:
-                    if overlap <= 0.0 < previous:
+                lives_above = engaged_above(constants, pair_row[mat, cylinder_material[c]])
+                if overlap <= lives_above or overlap >= ri:
+                    if overlap <= lives_above < previous:
                         cylinder_history[i, c, :] = 0.0
                     elif overlap >= ri:
                         fault(status, TUNNELLED, i, c, CYLINDER)
@@ -437,17 +456,22 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 dx, dy, dz = px - position[j, 0], py - position[j, 1], pz - position[j, 2]
                 distance_squared = dx * dx + dy * dy + dz * dz
                 reach = ri + radius[j]
-                touching = distance_squared < reach * reach
+                lives_above = 0.0
+                if REACH:  # compile-time: a contact lives while the distance is below r_i + r_j + reach
+                    lives_above = engaged_above(constants, pair_row[mat, material[j]])
+                    touching = distance_squared < (reach - lives_above) * (reach - lives_above)
+                else:
+                    touching = distance_squared < reach * reach
                 touching_entries[n_touching] = e
                 n_touching += touching
                 previous = pair_overlap[e]
-                if TRACK or ((not touching) & (previous > 0.0)):
+                if TRACK or ((not touching) & (previous > lives_above)):
                     if not touching:
                         overlap = reach - math.sqrt(distance_squared)
                         pair_overlap[e] = overlap
                         if TRACK:
                             note_transitions(stats, time, dt, overlap, previous)
-                        if previous > 0.0:
+                        if previous > lives_above:
                             # contact ends: its history is dropped and its reaction on j
                             # is zero from now on (finish_range adds every entry unconditionally)
                             pair_history[e, :] = 0.0

@@ -245,6 +245,9 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
     law = entry.law
     # a law with rolling or twisting parts takes the relative spin and returns a couple
     flags["COUPLES"] = bool(law.couples)
+    # a law acting beyond touch (adhesion): contacts live down to -reach (the last
+    # column of the constants row); without one the kernel is the same code as before
+    flags["REACH"] = law.reach is not None
     flags["OPENING_KICK"] = integrate.OPENING_KICK[integrator]
     force_module, force_name = laws.force_import_name(law)
     law_hash, law_dispatchers = _force_dependencies(law.force)
@@ -320,6 +323,9 @@ class RunResult:
     contact_statistics: bool = True
     # the largest work gravity did on the particles since t = 0 (J), at the run's checks
     gravity_work_max: float = 0.0
+    # the most kinetic energy the contacts can supply at once (J): adhesion's bound per
+    # contact times the most contacts (Simulation._prepare_reach); 0 for passive laws
+    supply_budget: float = 0.0
 
 
 # State arrays a checkpoint holds: particle arrays, then the contact arrays of each
@@ -540,6 +546,37 @@ class Simulation:
                 self.pairs_[(a, b)] = pair
                 self.constants_by_pair[(a, b)] = named
         self.constants = np.array(rows, dtype=np.float64).reshape(len(rows), len(law.constants))
+        self._prepare_reach()
+
+    def _prepare_reach(self) -> None:
+        """A law acting beyond touch: its reach per material pair at the scene's largest
+        R* (a sphere on a wall: its radius; two spheres: at most half the largest), kept
+        as the last column of the constants row (the kernel reads it there; the parts
+        index their own columns from the start), and the largest for the neighbour
+        search. The adhesion budget of the energy guard: the law's supply bound per
+        contact times the most contacts the scene can hold at once."""
+        scene, law = self.scene, self.law
+        self.max_reach, self.supply_budget = 0.0, 0.0
+        largest_radius = float(scene.radius.max())
+        keys = sorted(self.pairs_, key=lambda key: self.pair_row[key])
+        if law.reach is not None:
+            if scene.walls.triangles.shape[0]:
+                raise laws.LawError(f"law '{law.name}' acts beyond touch (reach > 0): mesh walls do not support that "
+                                    "yet; use plane or cylinder walls")
+            reach = np.array([float(law.reach(self.pairs_[k], self.constants_by_pair[k], largest_radius))
+                              for k in keys])
+            if not np.all(np.isfinite(reach)) or np.any(reach < 0.0):
+                raise laws.LawError(f"law '{law.name}': its reach {reach.tolist()} m must be finite and >= 0")
+            self.constants = np.hstack([self.constants, reach[:, None]])
+            self.max_reach = float(reach.max())
+        if law.supply_bound is not None:
+            per_contact = max(float(law.supply_bound(self.pairs_[k], self.constants_by_pair[k], largest_radius))
+                              for k in keys)
+            n = scene.n_particles
+            walls = scene.walls.plane_point.shape[0] + scene.walls.cylinder_base.shape[0]
+            # at most 12 equal spheres touch one (kissing number; 6 N pairs), each sphere
+            # at most every plane and cylinder wall
+            self.supply_budget = per_contact * (6 * n * (n > 1) + n * walls)
 
     # -- time step ---------------------------------------------------------------
     def characteristic_speed(self) -> float:
@@ -719,7 +756,7 @@ class Simulation:
             # the old reactions, slots and transposed offsets go now, before the new list
             # is allocated: a rebuild holds two copies of the history, not of everything
             state.pairs = state.pairs[:4] + (None, None, None)
-            offsets, found = neighbours.build_pairs(state.position, radius, self.skin)
+            offsets, found = neighbours.build_pairs(state.position, radius, self.skin + self.max_reach)
             history, overlap = neighbours.carry_history(old_offsets, old_neighbours, old_history, old_overlap,
                                                         offsets, found)
             del old_offsets, old_neighbours, old_history, old_overlap
@@ -1159,7 +1196,7 @@ class _RunLoop:
             torque=state.torque, contacts=state.count_contacts(), neighbour_builds=state.builds,
             threads=self.loop_threads.most_used(), thread_steps=dict(self.loop_threads.steps),
             energy=np.array(self.energy), contact_statistics=not sim.parallel,
-            gravity_work_max=self.loop["gravity_work_max"],
+            gravity_work_max=self.loop["gravity_work_max"], supply_budget=sim.supply_budget,
         )
 
 

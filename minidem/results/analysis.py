@@ -121,13 +121,17 @@ def energy_budget_warning(result: RunResult) -> str | None:
     if scene.impact is not None or result.energy is None or len(result.energy) == 0:
         return None  # an impact's own check: energy_creation_warning
     initial, peak = float(result.energy[0, 1]), float(result.energy[:, 1].max())
-    budget = initial + max(result.gravity_work_max, 0.0)
+    # adhesive parts (energy role "supply") may give up to their bound per contact
+    budget = initial + max(result.gravity_work_max, 0.0) + result.supply_budget
     if peak <= budget * (1.0 + 1e-3):
         return None
     times = (f"{peak / budget:.3g} times" if budget > 0.0 else "more than")
-    return (f"the kinetic energy reached {peak:.3g} J, {times} what the scene can supply ({budget:.3g} J: the "
-            "initial kinetic energy plus the work of gravity; contacts cannot add energy): the time step is too "
-            "large for the contacts, or the law creates energy (docs/time-step.md)")
+    what = ("the initial kinetic energy plus the work of gravity plus what adhesion can supply, "
+            f"{result.supply_budget:.3g} J" if result.supply_budget else
+            "the initial kinetic energy plus the work of gravity; contacts cannot add energy")
+    return (f"the kinetic energy reached {peak:.3g} J, {times} what the scene can supply ({budget:.3g} J: "
+            f"{what}): the time step is too large for the contacts, or the law creates energy beyond its declared "
+            "role (docs/time-step.md)")
 
 
 SUMMARY_KEYS = ("law", "angle_deg", "speed", "en", "et", "x", "y1", "y2", "contact_duration_s", "max_overlap_m",

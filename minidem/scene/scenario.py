@@ -68,8 +68,9 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
     "contact": ("open", (
         Key("law", "str", None, "", "contact law, preset or alias (`minidem laws` lists them); required "
             "unless the law is composed of parts (`normal = ...`)"),
-        Key("normal", "str", None, "", "normal part (e.g. \"hertz\", \"hooke\"): compose the law of parts "
-            "instead of naming one; with a preset `law`, replaces the preset's part"),
+        Key("normal", "str", None, "", "normal part (e.g. \"hertz\", \"hooke\"; adhesive \"jkr\", \"dmt\" with "
+            "`surface_energy` in J/m^2): compose the law of parts instead of naming one; with a preset `law`, "
+            "replaces the preset's part"),
         Key("damping", "str", None, "", "damping part (e.g. \"tsuji\", \"viscous\") or \"none\""),
         Key("tangential", "str", None, "", "tangential part (e.g. \"mindlin\", \"linear_history\") or \"none\""),
         Key("rolling", "str", None, "", "rolling-resistance part (\"epsd\", \"sds_rolling\", \"constant_torque\") "
@@ -681,136 +682,24 @@ def load_scene(path: str | Path, overrides: list[str] = (), output_directory: st
 
 
 def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -> Scene:
-    from minidem.contact import laws
-
+    """Validate a scenario (the dict a TOML file parses to) and build its Scene. Every
+    problem is collected with its key and reported at once (ScenarioError); then what
+    the values imply (masses, energies) and the initial geometry are checked."""
     errors = _Errors(source)
     for section in data:
         if section not in SCHEMA and section != "sweep":
             errors.add(section, "unknown section" + _did_you_mean(section, SCHEMA)
                        + f"; valid sections: {', '.join(SCHEMA)}")
-
-    # materials
-    materials: list[Material] = []
-    raw_materials = data.get("materials", {})
-    if not isinstance(raw_materials, dict) or not raw_materials:
-        errors.add("materials", "at least one material is needed, e.g. [materials.glass] with "
-                   "youngs_modulus, poisson_ratio, density")
-        raw_materials = {}
-    for name, table in raw_materials.items():
-        values = _check_table(table, SCHEMA["materials"][1], f"materials.{name}", errors)
-        nu = values.get("poisson_ratio")
-        if isinstance(nu, float) and 0.5 < nu <= 1.0:
-            warnings.warn(f"{source}: materials.{name}.poisson_ratio = {nu:g} > 0.5 is not physical; "
-                          "accepted for stiffness-ratio studies (the paper's Table 1)", stacklevel=2)
-        if all(isinstance(values.get(k), float) for k in ("youngs_modulus", "poisson_ratio", "density")):
-            materials.append(Material(name, values["youngs_modulus"], values["poisson_ratio"], values["density"]))
-    material_index = {m.name: i for i, m in enumerate(materials)}
-
-    def material_of(name, where):
-        if name in material_index:
-            return material_index[name]
-        if isinstance(name, str) and name in raw_materials:
-            return -1  # invalid material, already reported
-        if isinstance(name, str):
-            errors.add(where, f"unknown material '{name}'" + _did_you_mean(name, raw_materials)
-                       + f"; defined: {', '.join(raw_materials) or 'none'}")
-        return -1
-
-    # contact law
-    contact = data.get("contact")
-    law_name, law_parameters, pair_parameters = None, {}, {}
-    if not isinstance(contact, dict):
-        errors.add("contact", ("expected a table" if "contact" in data else "missing [contact] section")
-                   + ' with at least law = "..." (or normal = "..." and the other parts) and the law\'s '
-                   'parameters, e.g. friction (`minidem laws`)')
-    else:
-        law_name, law_parameters, pair_parameters = _contact_law(contact, material_index, raw_materials, errors)
-
-    # walls
-    walls = data.get("walls", [])
-    if not isinstance(walls, list):
-        errors.add("walls", "expected an array of tables: [[walls]]")
-        walls = []
-    wall_point, wall_normal, wall_material = [], [], []
-    plane_origin = []  # per plane: ([[walls]] index, what it is, display bounds)
-    from minidem.geometry import walls as wall_shapes
-
-    wall_set = wall_shapes.WallSet.empty()
-    cylinders, meshes = [], []
-    for index, table in enumerate(walls):
-        where = f"walls[{index}]"
-        values = _check_table(table, SCHEMA["walls"][1], where, errors)
-        kind = values.get("type")
-        _check_kind_keys(table, "walls", kind, where, errors)
-        if kind in ("box", "cylinder", "mesh"):
-            _shaped_wall(kind, values, where, source, errors, material_of, wall_point, wall_normal,
-                         wall_material, cylinders, meshes, index, plane_origin)
-            continue
-        normal = values.get("normal")
-        if normal is None and kind == "plane" and not errors.has(f"{where}.normal"):
-            errors.add(f"{where}.normal", "missing required key for a plane (normal pointing to the spheres)")
-        if isinstance(normal, np.ndarray):
-            length = float(np.linalg.norm(normal))
-            if length == 0.0:
-                errors.add(f"{where}.normal", "must not be the zero vector")
-            else:
-                normal = normal / length
-        if isinstance(normal, np.ndarray) and isinstance(values.get("point"), np.ndarray):
-            wall_point.append(values["point"])
-            wall_normal.append(normal)
-            wall_material.append(material_of(values.get("material"), f"{where}.material"))
-            plane_origin.append((index, "plane", []))
-
-    # particles, and the impact helper
-    position, velocity, spin, radius, particle_material = [], [], [], [], []
-    for index, table in enumerate(data.get("particles", []) if isinstance(data.get("particles", []), list) else []):
-        where = f"particles[{index}]"
-        values = _check_table(table, SCHEMA["particles"][1], where, errors)
-        if all(k in values and values[k] is not None for k in ("position", "radius", "velocity", "angular_velocity")):
-            position.append(values["position"])
-            velocity.append(values["velocity"])
-            spin.append(values["angular_velocity"])
-            radius.append(values["radius"])
-            particle_material.append(material_of(values.get("material"), f"{where}.material"))
-    if "particles" in data and not isinstance(data["particles"], list):
-        errors.add("particles", "expected an array of tables: [[particles]]")
-
-    impact = None
-    if "impact" in data:
-        values = _check_table(data["impact"], SCHEMA["impact"][1], "impact", errors)
-        wall = values.get("wall")
-        _impact_velocity(data["impact"], values, errors)
-        if isinstance(wall, int) and not 0 <= wall < len(wall_normal):
-            if not errors.has_under("walls"):  # a bad [[walls]] table is reported already
-                errors.add("impact.wall", f"wall index {wall} does not exist: the scenario has "
-                           f"{len(wall_normal)} valid wall(s) (an [[walls]] plane is needed)")
-        elif all(isinstance(values.get(k), float) for k in ("radius", "speed", "angle_deg", "spin", "gap")):
-            if values["angle_deg"] >= 90.0 and not errors.has("impact.angle_deg"):
-                errors.add("impact.angle_deg", "must be < 90 deg (90 is parallel to the wall: no impact)")
-            normal = wall_normal[wall]
-            tangent = _tangent(normal, values.get("tangent"), errors)
-            if tangent is not None:
-                theta = math.radians(values["angle_deg"])
-                # index 0: the impact sphere is particle 0, the one the rebound is measured on
-                position.insert(0, wall_point[wall] + (values["radius"] + values["gap"]) * normal)
-                velocity.insert(0, values["speed"] * (math.sin(theta) * tangent - math.cos(theta) * normal))
-                spin.insert(0, values["spin"] * np.cross(normal, tangent))
-                radius.insert(0, values["radius"])
-                particle_material.insert(0, material_of(values.get("material"), "impact.material"))
-                impact = Impact(values["speed"], values["angle_deg"], wall, normal, tangent)
-    fills = data.get("fill", [])
-    if not isinstance(fills, list):
-        errors.add("fill", "expected an array of tables: [[fill]]")
-        fills = []
-    fill_ranges = []
-    for index, table in enumerate(fills):
-        first = len(radius)
-        _fill(table, f"fill[{index}]", source, errors, material_of, position, velocity, spin, radius,
-              particle_material)
-        fill_ranges.append((first, len(radius)))
-    if not radius and not errors.messages:
+    materials, material_of = _materials(data, source, errors)
+    law_name, law_parameters, pair_parameters = _contact(data, material_of, errors)
+    walls = _Walls()
+    _wall_tables(data, source, errors, material_of, walls)
+    bodies = _Bodies()
+    _particle_tables(data, errors, material_of, bodies)
+    impact = _impact(data, errors, material_of, walls, bodies)
+    _fills(data, source, errors, material_of, bodies)
+    if not bodies.radius and not errors.messages:
         errors.add("", "the scene has no particles: add an [impact] block, [[particles]] or [[fill]]")
-
     run = _check_table(data.get("run", {}), SCHEMA["run"][1], "run", errors)
     if run.get("stop") == "time" and run.get("end_time") is None and not errors.has("run.end_time"):
         errors.add("run.end_time", 'required when run.stop = "time"')
@@ -825,14 +714,14 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         law_name=law_name,
         law_parameters=law_parameters,
         pair_parameters=pair_parameters,
-        position=np.array(position, dtype=np.float64).reshape(-1, 3),
-        velocity=np.array(velocity, dtype=np.float64).reshape(-1, 3),
-        angular_velocity=np.array(spin, dtype=np.float64).reshape(-1, 3),
-        radius=np.array(radius, dtype=np.float64),
-        particle_material=np.array(particle_material, dtype=np.int64),
-        wall_point=np.array(wall_point, dtype=np.float64).reshape(-1, 3),
-        wall_normal=np.array(wall_normal, dtype=np.float64).reshape(-1, 3),
-        wall_material=np.array(wall_material, dtype=np.int64),
+        position=np.array(bodies.position, dtype=np.float64).reshape(-1, 3),
+        velocity=np.array(bodies.velocity, dtype=np.float64).reshape(-1, 3),
+        angular_velocity=np.array(bodies.spin, dtype=np.float64).reshape(-1, 3),
+        radius=np.array(bodies.radius, dtype=np.float64),
+        particle_material=np.array(bodies.material, dtype=np.int64),
+        wall_point=np.array(walls.point, dtype=np.float64).reshape(-1, 3),
+        wall_normal=np.array(walls.normal, dtype=np.float64).reshape(-1, 3),
+        wall_material=np.array(walls.material, dtype=np.int64),
         dt=run["dt"],
         steps_per_contact=run["steps_per_contact"],
         integrator=run["integrator"],
@@ -851,24 +740,9 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         vtk_contacts=output["contacts"],
         checkpoint_interval=output["checkpoint_interval"],
         checkpoint_wall_interval=output["checkpoint_wall_interval"],
-        fill_ranges=fill_ranges,
+        fill_ranges=bodies.fill_ranges,
     )
-    wall_set.set_planes(scene.wall_point, scene.wall_normal, scene.wall_material, plane_origin)
-    if cylinders:
-        wall_set.cylinder_base = np.array([c[0] for c in cylinders])
-        wall_set.cylinder_axis = np.array([c[1] for c in cylinders])
-        wall_set.cylinder_radius = np.array([c[2] for c in cylinders])
-        wall_set.cylinder_length = np.array([c[3] for c in cylinders])
-        wall_set.cylinder_material = np.array([c[4] for c in cylinders], dtype=np.int64)
-        wall_set.cylinder_table = np.array([c[5] for c in cylinders], dtype=np.int64)
-    if meshes:
-        wall_set.triangles = np.concatenate([v[f] for v, f, *_ in meshes])
-        wall_set.triangle_material = np.concatenate([np.full(len(f), m, dtype=np.int64) for v, f, m, *_ in meshes])
-        wall_set.triangle_table = np.concatenate([np.full(len(f), k, dtype=np.int64) for v, f, m, k, _ in meshes])
-        wall_set.mesh_files = {k: name for v, f, m, k, name in meshes}
-        wall_set.meshes = [(v, f) for v, f, *_ in meshes]
-        wall_set.mesh_table = [k for v, f, m, k, _ in meshes]
-    scene.walls = wall_set
+    scene.walls = walls.wall_set(scene)
     if scene.integrator == "auto":
         # Free flight is exact in closed form for one sphere among planes (constant
         # gravity, nothing to hit but the planes): stepping it at the contact's dt would
@@ -880,6 +754,194 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
     derived.check_scene(scene)  # masses, inertias, energies: what the values imply
     _check_geometry(scene)
     return scene
+
+
+class _MaterialNames:
+    """Material name -> index into the scene's materials; an unknown name is reported
+    (with the names defined) and gives -1, as does a material whose table was invalid."""
+
+    def __init__(self, materials: list[Material], raw: dict, errors: _Errors):
+        self.index = {m.name: i for i, m in enumerate(materials)}
+        self.raw, self.errors = raw, errors
+
+    def __call__(self, name, where: str) -> int:
+        if name in self.index:
+            return self.index[name]
+        if isinstance(name, str) and name in self.raw:
+            return -1  # invalid material, already reported
+        if isinstance(name, str):
+            self.errors.add(where, f"unknown material '{name}'" + _did_you_mean(name, self.raw)
+                            + f"; defined: {', '.join(self.raw) or 'none'}")
+        return -1
+
+
+def _materials(data: dict, source: str, errors: _Errors) -> tuple[list[Material], _MaterialNames]:
+    """[materials.NAME] tables -> the materials and their names' lookup."""
+    materials: list[Material] = []
+    raw_materials = data.get("materials", {})
+    if not isinstance(raw_materials, dict) or not raw_materials:
+        errors.add("materials", "at least one material is needed, e.g. [materials.glass] with "
+                   "youngs_modulus, poisson_ratio, density")
+        raw_materials = {}
+    for name, table in raw_materials.items():
+        values = _check_table(table, SCHEMA["materials"][1], f"materials.{name}", errors)
+        nu = values.get("poisson_ratio")
+        if isinstance(nu, float) and 0.5 < nu <= 1.0:
+            warnings.warn(f"{source}: materials.{name}.poisson_ratio = {nu:g} > 0.5 is not physical; "
+                          "accepted for stiffness-ratio studies (the paper's Table 1)", stacklevel=3)
+        if all(isinstance(values.get(k), float) for k in ("youngs_modulus", "poisson_ratio", "density")):
+            materials.append(Material(name, values["youngs_modulus"], values["poisson_ratio"], values["density"]))
+    return materials, _MaterialNames(materials, raw_materials, errors)
+
+
+def _contact(data: dict, material_of: _MaterialNames, errors: _Errors):
+    """[contact] -> (law name, law parameters, per-pair parameters)."""
+    contact = data.get("contact")
+    if not isinstance(contact, dict):
+        errors.add("contact", ("expected a table" if "contact" in data else "missing [contact] section")
+                   + ' with at least law = "..." (or normal = "..." and the other parts) and the law\'s '
+                   'parameters, e.g. friction (`minidem laws`)')
+        return None, {}, {}
+    return _contact_law(contact, material_of.index, material_of.raw, errors)
+
+
+@dataclasses.dataclass
+class _Walls:
+    """The walls read so far: planes (a box's faces among them) as point, normal and
+    material lists, with their origin per plane ([[walls]] index, what it is, display
+    bounds); cylinders and meshes as the tuples _shaped_wall appends."""
+
+    point: list = dataclasses.field(default_factory=list)
+    normal: list = dataclasses.field(default_factory=list)
+    material: list = dataclasses.field(default_factory=list)
+    origin: list = dataclasses.field(default_factory=list)
+    cylinders: list = dataclasses.field(default_factory=list)
+    meshes: list = dataclasses.field(default_factory=list)
+
+    def wall_set(self, scene: Scene):
+        """The flat arrays the kernel reads (minidem.geometry.walls.WallSet)."""
+        from minidem.geometry import walls as wall_shapes
+
+        wall_set = wall_shapes.WallSet.empty()
+        wall_set.set_planes(scene.wall_point, scene.wall_normal, scene.wall_material, self.origin)
+        cylinders, meshes = self.cylinders, self.meshes
+        if cylinders:
+            wall_set.cylinder_base = np.array([c[0] for c in cylinders])
+            wall_set.cylinder_axis = np.array([c[1] for c in cylinders])
+            wall_set.cylinder_radius = np.array([c[2] for c in cylinders])
+            wall_set.cylinder_length = np.array([c[3] for c in cylinders])
+            wall_set.cylinder_material = np.array([c[4] for c in cylinders], dtype=np.int64)
+            wall_set.cylinder_table = np.array([c[5] for c in cylinders], dtype=np.int64)
+        if meshes:
+            wall_set.triangles = np.concatenate([v[f] for v, f, *_ in meshes])
+            wall_set.triangle_material = np.concatenate([np.full(len(f), m, dtype=np.int64)
+                                                         for v, f, m, *_ in meshes])
+            wall_set.triangle_table = np.concatenate([np.full(len(f), k, dtype=np.int64) for v, f, m, k, _ in meshes])
+            wall_set.mesh_files = {k: name for v, f, m, k, name in meshes}
+            wall_set.meshes = [(v, f) for v, f, *_ in meshes]
+            wall_set.mesh_table = [k for v, f, m, k, _ in meshes]
+        return wall_set
+
+
+def _wall_tables(data: dict, source: str, errors: _Errors, material_of, walls: _Walls) -> None:
+    """[[walls]] tables: planes here, boxes, cylinders and meshes through _shaped_wall."""
+    tables = data.get("walls", [])
+    if not isinstance(tables, list):
+        errors.add("walls", "expected an array of tables: [[walls]]")
+        tables = []
+    for index, table in enumerate(tables):
+        where = f"walls[{index}]"
+        values = _check_table(table, SCHEMA["walls"][1], where, errors)
+        kind = values.get("type")
+        _check_kind_keys(table, "walls", kind, where, errors)
+        if kind in ("box", "cylinder", "mesh"):
+            _shaped_wall(kind, values, where, source, errors, material_of, walls.point, walls.normal,
+                         walls.material, walls.cylinders, walls.meshes, index, walls.origin)
+            continue
+        normal = values.get("normal")
+        if normal is None and kind == "plane" and not errors.has(f"{where}.normal"):
+            errors.add(f"{where}.normal", "missing required key for a plane (normal pointing to the spheres)")
+        if isinstance(normal, np.ndarray):
+            length = float(np.linalg.norm(normal))
+            if length == 0.0:
+                errors.add(f"{where}.normal", "must not be the zero vector")
+            else:
+                normal = normal / length
+        if isinstance(normal, np.ndarray) and isinstance(values.get("point"), np.ndarray):
+            walls.point.append(values["point"])
+            walls.normal.append(normal)
+            walls.material.append(material_of(values.get("material"), f"{where}.material"))
+            walls.origin.append((index, "plane", []))
+
+
+@dataclasses.dataclass
+class _Bodies:
+    """The particles read so far, one list per quantity (SI), and the index range of
+    each [[fill]]."""
+
+    position: list = dataclasses.field(default_factory=list)
+    velocity: list = dataclasses.field(default_factory=list)
+    spin: list = dataclasses.field(default_factory=list)
+    radius: list = dataclasses.field(default_factory=list)
+    material: list = dataclasses.field(default_factory=list)
+    fill_ranges: list = dataclasses.field(default_factory=list)
+
+    def insert(self, index, position, velocity, spin, radius, material) -> None:
+        for values, value in zip((self.position, self.velocity, self.spin, self.radius, self.material),
+                                 (position, velocity, spin, radius, material)):
+            values.insert(index, value)
+
+
+def _particle_tables(data: dict, errors: _Errors, material_of, bodies: _Bodies) -> None:
+    """[[particles]]: one sphere per table."""
+    for index, table in enumerate(data.get("particles", []) if isinstance(data.get("particles", []), list) else []):
+        where = f"particles[{index}]"
+        values = _check_table(table, SCHEMA["particles"][1], where, errors)
+        if all(k in values and values[k] is not None for k in ("position", "radius", "velocity", "angular_velocity")):
+            bodies.insert(len(bodies.radius), values["position"], values["velocity"], values["angular_velocity"],
+                          values["radius"], material_of(values.get("material"), f"{where}.material"))
+    if "particles" in data and not isinstance(data["particles"], list):
+        errors.add("particles", "expected an array of tables: [[particles]]")
+
+
+def _impact(data: dict, errors: _Errors, material_of, walls: _Walls, bodies: _Bodies) -> Impact | None:
+    """[impact]: the paper's sphere, placed at its wall as particle 0 (the one the
+    rebound is measured on)."""
+    if "impact" not in data:
+        return None
+    values = _check_table(data["impact"], SCHEMA["impact"][1], "impact", errors)
+    wall = values.get("wall")
+    _impact_velocity(data["impact"], values, errors)
+    if isinstance(wall, int) and not 0 <= wall < len(walls.normal):
+        if not errors.has_under("walls"):  # a bad [[walls]] table is reported already
+            errors.add("impact.wall", f"wall index {wall} does not exist: the scenario has "
+                       f"{len(walls.normal)} valid wall(s) (an [[walls]] plane is needed)")
+    elif all(isinstance(values.get(k), float) for k in ("radius", "speed", "angle_deg", "spin", "gap")):
+        if values["angle_deg"] >= 90.0 and not errors.has("impact.angle_deg"):
+            errors.add("impact.angle_deg", "must be < 90 deg (90 is parallel to the wall: no impact)")
+        normal = walls.normal[wall]
+        tangent = _tangent(normal, values.get("tangent"), errors)
+        if tangent is not None:
+            theta = math.radians(values["angle_deg"])
+            bodies.insert(0, walls.point[wall] + (values["radius"] + values["gap"]) * normal,
+                          values["speed"] * (math.sin(theta) * tangent - math.cos(theta) * normal),
+                          values["spin"] * np.cross(normal, tangent), values["radius"],
+                          material_of(values.get("material"), "impact.material"))
+            return Impact(values["speed"], values["angle_deg"], wall, normal, tangent)
+    return None
+
+
+def _fills(data: dict, source: str, errors: _Errors, material_of, bodies: _Bodies) -> None:
+    """[[fill]] generators, appended after the listed particles."""
+    fills = data.get("fill", [])
+    if not isinstance(fills, list):
+        errors.add("fill", "expected an array of tables: [[fill]]")
+        fills = []
+    for index, table in enumerate(fills):
+        first = len(bodies.radius)
+        _fill(table, f"fill[{index}]", source, errors, material_of, bodies.position, bodies.velocity, bodies.spin,
+              bodies.radius, bodies.material)
+        bodies.fill_ranges.append((first, len(bodies.radius)))
 
 
 def _required(values, keys, kind, where, errors) -> bool:

@@ -65,6 +65,19 @@ class Battery:
     def has_parameter(self, name: str) -> bool:
         return any(p.name == name for p in self.law.parameters)
 
+    def adhesive_parts(self) -> list:
+        """The parts that may supply energy (energy role "supply": adhesion)."""
+        return [p for p in self.law.parts if "supply" in p.energy]
+
+    def skipped_for_adhesion(self, name: str, assumption: str) -> list[Check] | None:
+        """A check whose premise is a passive, tension-free contact: skipped (and why) for
+        a combination with an adhesive part."""
+        adhesive = self.adhesive_parts()
+        if not adhesive:
+            return None
+        return [Check(name, None, f"skipped: the combination has an adhesive {adhesive[0].kind} part "
+                      f"'{adhesive[0].name}'", f"not applicable: {assumption}", "the part's energy role 'supply'")]
+
     # -- the checks ---------------------------------------------------------------
     def energy(self) -> list[Check]:
         elastic = ["contact.restitution=1.0"] if self.has_parameter("restitution") else []
@@ -74,13 +87,21 @@ class Battery:
                         f"max energy ratio {ratios[worst]:.10f} at {worst:g} deg", "<= 1 + 1e-9 at every angle",
                         "an elastic contact can only store and return energy; the paper's Fig 12 shows the "
                         "integral form violating this")]
-        if self.has_parameter("restitution"):
+        skipped = self.skipped_for_adhesion("restitution 0.5 reproduced (normal impact)",
+                                            "the damping part maps restitution for a spring without adhesion")
+        if skipped:
+            checks += skipped
+        elif self.has_parameter("restitution"):
             en = self.run("impact.angle_deg=0.0", "contact.restitution=0.5")[0]["en"]
             checks.append(Check("restitution 0.5 reproduced (normal impact)", abs(en - 0.5) <= 0.005,
                                 f"en = {en:.5f}", "|en - 0.5| <= 1 %", "the law's declared restitution mapping"))
         return checks
 
     def sliding_limit(self) -> list[Check]:
+        skipped = self.skipped_for_adhesion("rigid-body sliding limit", "paper eqs 6-8 assume Coulomb's limit "
+                                            "mu Fn on a normal force that is never tensile")
+        if skipped:
+            return skipped
         resisting = [f"{p.kind} part '{p.name}'" for p in self.law.parts if p.kind in ("rolling", "twisting")]
         if resisting:  # eqs 6-8 have only the tangential force turn the sphere
             return [Check("rigid-body sliding limit", None, f"skipped: the combination has a {resisting[0]}",
@@ -96,6 +117,10 @@ class Battery:
                       "paper eqs 6-8 (gross sliding throughout the impact)")]
 
     def duration(self) -> list[Check]:
+        skipped = self.skipped_for_adhesion("normal-impact duration", "adhesion lengthens the contact beyond the "
+                                            "normal part's contact_time (JKR forms at touch and breaks apart)")
+        if skipped:
+            return skipped
         if self.law.contact_time is None and "hertz" not in (self.law.reference + self.law.description).lower():
             return [Check("normal-impact duration", None, "law declares no contact_time", "-", "-")]
         summary, result = self.run("impact.angle_deg=0.0", *(["contact.restitution=1.0"]
@@ -155,6 +180,57 @@ class Battery:
         return [Check("history stays in its declared slots", True,
                       f"{steps - 1} calls along an oblique load-unload path", f"writes only history[0:{size}]",
                       "the law's HistorySlot declarations (docs/writing-a-contact-law.md)")]
+
+    def adhesion(self) -> list[Check]:
+        """An adhesive combination: a normal impact slow enough for adhesion to matter
+        (1/2 m v^2 = 4 times the supply bound, so the sphere still rebounds) must pass
+        through the declared pull-off force, and the kinetic energy may exceed its
+        initial value by at most the supply bound, there and in an impact 16 times
+        slower in energy (which sticks: the sphere oscillates in the adhesive well)."""
+        adhesive = self.adhesive_parts()
+        names = ("adhesion: pull-off force", "adhesion: energy bounded by the adhesion work")
+        if not adhesive:
+            return [Check(name, None, "skipped: no part of the combination supplies energy (no adhesion)",
+                          "applies to parts with the energy role 'supply'", "-") for name in names]
+        scene = scenario.build_scene(copy.deepcopy(self.base), source=f"<verify {self.law.name}>",
+                                     output_directory="-")
+        radius, mass, inertia = float(scene.radius[0]), float(scene.mass[0]), float(scene.inertia[0])
+        pair = laws.ContactPair.from_materials(scene.materials[0], scene.materials[0], radius, mass, 5.0)
+        _, constants = self.law.prepared_constants(pair, scene.law_parameters)
+        bound = float(self.law.supply_bound(pair, constants, radius))
+        elastic = ["contact.restitution=1.0"] if self.has_parameter("restitution") else []
+        checks, worst, runs = [], -math.inf, []
+        for energy_factor in (4.0, 1.0 / 16.0):
+            speed = math.sqrt(2.0 * energy_factor * bound / mass)
+            duration = laws.law_contact_time(self.law, pair, constants, radius, mass, speed)
+            _, result = self.run("impact.angle_deg=0.0", f"impact.speed={speed!r}", "run.stop=\"time\"",
+                                 f"run.end_time={20.0 * duration!r}", *elastic, trace=True)
+            trace = result.trace
+            kinetic = (0.5 * mass * np.sum(trace[:, 9:12] ** 2, axis=1)
+                       + 0.5 * inertia * np.sum(trace[:, 12:15] ** 2, axis=1))
+            initial = 0.5 * mass * speed**2
+            worst = max(worst, (float(kinetic.max()) - initial) / bound)
+            runs.append((speed, trace))
+        checks_pull = []
+        speed, trace = runs[0]
+        for part in adhesive:
+            if part.pull_off is None:
+                checks_pull.append(Check(names[0], None, f"skipped: part '{part.name}' declares no pull_off", "-", "-"))
+                continue
+            own = {c: constants[f"{part.kind}.{c}"] for c in part.constants}
+            expected = float(part.pull_off(pair, own, radius))
+            measured = -float(trace[:, 2].min())
+            error = measured / expected - 1.0
+            checks_pull.append(Check(names[0], abs(error) <= 0.01,
+                                     f"{measured:.6g} N vs {expected:.6g} N ({error:+.2%}) at {speed:.3g} m/s",
+                                     "largest tensile force within 1 % of the part's pull_off",
+                                     f"part '{part.name}': {part.reference}"))
+        checks += checks_pull
+        checks.append(Check(names[1], worst <= 1.0 + 1e-3,
+                            f"largest gain of kinetic energy {worst:.4f} of the supply bound {bound:.3g} J",
+                            "<= the parts' supply_bound (+0.1 % integration error), in a rebound and in a sticking "
+                            "impact", "the parts' declared energy role 'supply' and its bound"))
+        return checks
 
     def against_hmd(self) -> tuple[list[Check], dict]:
         curves = {"angle_deg": list(PAPER_ANGLES)}
@@ -296,6 +372,7 @@ def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
 def run_battery(law_name: str, overrides: list[str] = (), out_directory: Path | None = None) -> list[Check]:
     battery = Battery(law_name, overrides)
     checks = battery.history_bounds() + battery.energy() + battery.sliding_limit() + battery.duration()
+    checks += battery.adhesion()
     comparison, curves = battery.against_hmd()
     loop, trace = battery.first_loop()
     checks += comparison + loop + battery.convergence() + battery.pair_collision()

@@ -9,9 +9,9 @@ from minidem.contact.hookspecs import hookimpl
 
 @hookimpl
 def minidem_register_laws(registry):
-    from minidem.contact.builtin_laws import hertz, linear, parts, rolling
+    from minidem.contact.builtin_laws import adhesion, hertz, linear, parts, rolling
 
     for law in linear.LAWS + hertz.LAWS:
         registry.add(law)
-    for part in parts.PARTS + rolling.PARTS:
+    for part in parts.PARTS + rolling.PARTS + adhesion.PARTS:
         registry.add(part)

@@ -1,0 +1,226 @@
+"""Adhesive normal parts (issue 14): JKR's pull-off force, its break at the critical
+separation, the sticking of a sphere on a wall below the critical velocity of Thornton &
+Ning (1998) and its rebound above; DMT's pull-off; contacts living beyond touch in the
+neighbour list; the energy guard and ``minidem verify`` bounding what adhesion supplies.
+
+Kernels: the combination jkr+mindlin for one sphere on a plane (SPIN, planes) serves
+every wall test and verify's impacts; the sphere-sphere test adds its PAIRS kernel and
+the DMT test the dmt+mindlin one.
+
+Analytic JKR (Johnson 1985, section 5.5; gamma the work of adhesion, E* = 1/((1-nu1^2)/E1
++ (1-nu2^2)/E2)):
+    d = a^2/R* - sqrt(2 pi gamma a / E*),  Fn = 4 E* a^3/(3 R*) - sqrt(8 pi gamma E* a^3)
+    pull-off Fc = 3/2 pi gamma R*; the curve ends (dd/da = 0) at
+    d_c = -3/4 (pi^2 gamma^2 R* / E*^2)^(1/3).
+The work of separation, the integral of -Fn from d_c to 0, is W_s = 0.662996 pi gamma a_z^2,
+a_z^3 = 2 pi gamma R*^2 / E* (with a = a_z t: -Fn dd = pi gamma a_z^2 (28/3 t^2.5 - 2 t -
+16/3 t^4) dt from t_c = 16^(-1/3) to 1). An undamped impact loses exactly W_s (the curve
+is conservative between touch and break; the force jumps at fixed d), so a sphere sticks
+below v_c = sqrt(2 W_s / m*) and rebounds above with e = sqrt(1 - (v_c / v)^2): the
+sticking criterion of Thornton & Ning (1998), impact energy against the work of
+separation, with W_s integrated here from the JKR curve (not their rounded constant).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from minidem.engine import simulation
+from minidem.results import analysis
+from minidem.scene import scenario
+from minidem.studies import verify
+
+RADIUS, DENSITY, YOUNG, POISSON, GAMMA = 0.01, 1000.0, 1e7, 0.3, 1.0
+MASS = 4.0 / 3.0 * math.pi * RADIUS**3 * DENSITY
+E_STAR = 1.0 / (2.0 * (1.0 - POISSON**2) / YOUNG)  # identical sphere and wall
+
+
+def jkr_constants(effective_radius, effective_mass):
+    a_z = (2.0 * math.pi * GAMMA * effective_radius**2 / E_STAR) ** (1.0 / 3.0)
+    separation_work = 0.662996 * math.pi * GAMMA * a_z**2
+    return {
+        "pull_off": 1.5 * math.pi * GAMMA * effective_radius,
+        "critical_separation": 0.75 * (math.pi**2 * GAMMA**2 * effective_radius / E_STAR**2) ** (1.0 / 3.0),
+        "critical_velocity": math.sqrt(2.0 * separation_work / effective_mass),
+    }
+
+
+WALL = jkr_constants(RADIUS, MASS)
+
+SCENE = """
+[materials.m]
+youngs_modulus = {young!r}
+poisson_ratio = {poisson!r}
+density = {density!r}
+
+[contact]
+{contact}
+surface_energy = {gamma!r}
+friction = 0.3
+
+{walls}
+{particles}
+[run]
+stop = "time"
+end_time = {end_time!r}
+gravity = [0.0, 0.0, 0.0]
+{run}
+[output]
+trace = true
+"""
+PLANE = """[[walls]]
+point = [0.0, 0.0, 0.0]
+normal = [0.0, 0.0, 1.0]
+material = "m"
+"""
+
+
+def particle(z, vz):
+    return (f"[[particles]]\nposition = [0.0, 0.0, {z!r}]\nvelocity = [0.0, 0.0, {vz!r}]\nradius = {RADIUS!r}\n"
+            'material = "m"\n')
+
+
+def run(tmp_path, contact, walls, particles, end_time, run_keys=""):
+    path = tmp_path / f"scene{len(list(tmp_path.iterdir()))}.toml"
+    path.write_text(SCENE.format(young=YOUNG, poisson=POISSON, density=DENSITY, contact=contact, gamma=GAMMA,
+                                 walls=walls, particles="\n".join(particles), end_time=end_time, run=run_keys))
+    return simulation.Simulation(scenario.load_scene(path, [])).run()
+
+
+def wall_impact(tmp_path, speed_factor, contact='normal = "jkr"\ntangential = "mindlin"'):
+    """A sphere starting 2 |d_c| above the wall (outside the reach) at speed_factor v_c."""
+    speed = speed_factor * WALL["critical_velocity"]
+    gap = 2.0 * WALL["critical_separation"]
+    return speed, run(tmp_path, contact, PLANE, [particle(RADIUS + gap, -speed)], gap / speed + 0.03)
+
+
+@pytest.fixture(scope="module")
+def rebound(tmp_path_factory):
+    return wall_impact(tmp_path_factory.mktemp("rebound"), 2.0)
+
+
+def test_jkr_pull_off_force_is_three_halves_pi_gamma_r(rebound):
+    # any rebound that breaks the contact passes through a^3 = 9 pi gamma R*^2 / (8 E*),
+    # where the tension is largest: Fc = 3/2 pi gamma R* (Johnson, Kendall & Roberts 1971)
+    _, result = rebound
+    assert -result.trace[:, 2].min() == pytest.approx(WALL["pull_off"], rel=0.01)
+
+
+def test_jkr_breaks_at_the_critical_separation(rebound):
+    # the contact lives into tension (negative overlap) and ends where the JKR curve ends,
+    # d_c = -3/4 (pi^2 gamma^2 R* / E*^2)^(1/3); the force there is -5/9 Fc, then zero
+    _, result = rebound
+    trace = result.trace
+    formed = trace[:, 2] != 0.0
+    assert trace[formed, 1].min() == pytest.approx(-WALL["critical_separation"], rel=0.01)
+    last = np.flatnonzero(formed)[-1]
+    # F(d) has a square-root singularity at d_c (dd/da = 0): the last step before it,
+    # ~1e-4 |d_c| away, is still 4 % from the end value
+    assert trace[last, 2] == pytest.approx(-5.0 / 9.0 * WALL["pull_off"], rel=0.05)
+    assert np.all(trace[last + 1:, 2] == 0.0) and trace[-1, 1] < -WALL["critical_separation"]
+
+
+def test_jkr_rebounds_above_the_thornton_ning_velocity_with_the_analytic_restitution(rebound):
+    # at 2 v_c the impact loses exactly the work of separation: e = sqrt(1 - 1/4)
+    speed, result = rebound
+    assert result.velocity[0, 2] / speed == pytest.approx(math.sqrt(0.75), rel=1e-3)
+
+
+def test_jkr_sticks_below_the_thornton_ning_velocity(tmp_path):
+    # at v_c / 2 the kinetic energy is a quarter of the work of separation: the sphere
+    # never reaches d_c and stays in the adhesive well (oscillating: nothing damps it)
+    speed, result = wall_impact(tmp_path, 0.5)
+    trace = result.trace
+    touched = np.flatnonzero(trace[:, 1] >= 0.0)[0]
+    assert np.all(trace[touched:, 2] != 0.0) or np.all(trace[touched:, 1] > -WALL["critical_separation"])
+    assert trace[touched:, 1].min() > -0.5 * WALL["critical_separation"]
+    assert result.position[0, 2] < RADIUS + WALL["critical_separation"]
+    # the well gives kinetic energy (the attraction pulls the sphere in) without the
+    # energy warning of a passive scene: within the adhesion budget
+    peak = float(result.energy[:, 1].max())
+    initial = 0.5 * MASS * speed**2
+    assert peak > 1.5 * initial
+    assert peak - initial <= result.supply_budget
+    assert analysis.energy_budget_warning(result) is None
+    # the guard's old assumption (passive contacts) would have flagged it: a law that
+    # supplies beyond its declared bound is still caught
+    passive = dataclasses.replace(result, supply_budget=0.0)
+    assert "times what the scene can supply" in analysis.energy_budget_warning(passive)
+
+
+def test_jkr_pair_lives_in_the_verlet_list_beyond_touch(tmp_path):
+    # two spheres closing at 2 v_c (R* = R/2, m* = m/2) with a Verlet skin far smaller than
+    # the reach: the list is built with skin + reach, so the pair is found before touch and
+    # kept in tension until d_c of R*; the relative rebound is sqrt(3/4) as for the wall
+    pair = jkr_constants(RADIUS / 2.0, MASS / 2.0)
+    speed = 2.0 * pair["critical_velocity"]
+    gap = 2.0 * pair["critical_separation"]
+    result = run(tmp_path, 'normal = "jkr"\ntangential = "mindlin"', "",
+                 [particle(0.0, 0.5 * speed), particle(2.0 * RADIUS + gap, -0.5 * speed)], gap / speed + 0.03,
+                 run_keys=f"skin = {1e-3 * pair['critical_separation']!r}")
+    relative = result.velocity[1, 2] - result.velocity[0, 2]
+    assert relative / speed == pytest.approx(math.sqrt(0.75), rel=1e-3)
+    assert result.neighbour_builds > 2  # the tiny skin made the list rebuild as they moved
+
+
+def test_dmt_pull_off_force_is_two_pi_gamma_r(tmp_path):
+    # DMT: Fn = 4/3 E* sqrt(R*) d^1.5 - 2 pi gamma R* while touching (Derjaguin, Muller &
+    # Toporov 1975): the largest tension, at touch, is 2 pi gamma R*; the curve is
+    # conservative (formed and broken at d = 0), so the undamped impact is elastic
+    speed, result = wall_impact(tmp_path, 2.0, contact='normal = "dmt"\ntangential = "mindlin"')
+    assert -result.trace[:, 2].min() == pytest.approx(2.0 * math.pi * GAMMA * RADIUS, rel=0.01)
+    assert result.velocity[0, 2] / speed == pytest.approx(1.0, abs=1e-3)
+
+
+@pytest.fixture(scope="module")
+def battery():
+    return verify.Battery("jkr+mindlin", ["contact.surface_energy=1.0"])
+
+
+def test_verify_runs_the_adhesive_checks_and_skips_the_passive_ones(battery):
+    checks = {c.name: c for c in battery.adhesion() + battery.duration() + battery.sliding_limit()}
+    assert checks["adhesion: pull-off force"].passed
+    assert checks["adhesion: energy bounded by the adhesion work"].passed
+    for name in ("normal-impact duration", "rigid-body sliding limit"):
+        assert checks[name].passed is None
+        assert "skipped: the combination has an adhesive normal part 'jkr'" in checks[name].value
+
+
+def test_verify_catches_adhesion_beyond_the_declared_bound():
+    # the same force with a supply bound a hundred times too small: the energy check fails
+    battery = verify.Battery("jkr+mindlin", ["contact.surface_energy=1.0"])
+    honest = battery.law.supply_bound
+    battery.law = dataclasses.replace(battery.law, supply_bound=lambda *args: 0.01 * honest(*args))
+    checks = {c.name: c for c in battery.adhesion()}
+    assert checks["adhesion: energy bounded by the adhesion work"].passed is False
+
+
+def test_passive_laws_skip_the_adhesion_checks_and_say_why():
+    checks = verify.Battery("hm").adhesion()
+    assert [c.passed for c in checks] == [None, None]
+    assert all("no part of the combination supplies energy" in c.value for c in checks)
+
+
+def test_adhesive_combination_passes_the_whole_battery():
+    # issue 14: a cohesive law failed two checks that assume a passive contact; with the
+    # parts' energy roles the battery runs what applies and skips (with the reason) what not
+    checks = verify.run_battery("jkr+mindlin", ["contact.surface_energy=1.0"])
+    failed = [c for c in checks if c.passed is False]
+    assert not failed, verify.format_table(failed)
+    assert sum(c.passed is None and c.value.startswith("skipped: the combination has an adhesive") for c in checks) == 3
+
+
+def test_reach_with_mesh_walls_is_refused_with_the_reason():
+    # mesh contacts follow one feature region per contact at overlap > 0 only: a law
+    # acting beyond touch is refused there (exit 2 through the CLI), not run wrongly
+    from conftest import REPO
+    from minidem.contact import laws
+
+    scene = scenario.load_scene(REPO / "scenarios" / "hopper.toml",
+                                ['contact.law="jkr+tsuji+mindlin"', "contact.surface_energy=0.1"])
+    with pytest.raises(laws.LawError, match="acts beyond touch .* mesh walls do not support that yet"):
+        simulation.Simulation(scene, compile=False)
