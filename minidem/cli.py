@@ -339,8 +339,9 @@ def build_parser() -> argparse.ArgumentParser:
                            "writes docs/benchmarks.md and docs/figures/")
     bench.add_argument("--quick", action="store_true", help="a small subset (CI smoke run)")
     bench.add_argument("--only", action="append", choices=("single-impact", "work-precision", "model-only",
-                                                             "sweep-timing", "multi-particle"),
-                       help="run only this section (repeatable); multi-particle runs only when named")
+                                                             "sweep-timing", "multi-particle", "compile"),
+                       help="run only this section (repeatable); multi-particle and compile (the compile time "
+                            "of each shipped law and combination) run only when named")
     bench.add_argument("--docs", type=Path, default=None, help="docs directory to write (default: the project's)")
     bench.set_defaults(handler=command_bench)
     return parser

@@ -3,7 +3,7 @@ output after a kill, determinism; and a plugin written outside the repository, i
 with pip, listed, run and verified.
 
 Kernel variants: the multi-particle runs use the scene of tests/test_multiparticle.py
-(scenarios/settle.toml, law hm, > 16 particles: the parallel variant it compiles) and
+(scenarios/bench/settle.toml, law hm, > 16 particles: the parallel variant it compiles) and
 the single impacts scenarios/oblique.toml (hmd, compiled by the foundation tests), so
 only the out-of-repo plugin compiles new kernels. One thread everywhere: results are
 the same on any number (tests/test_multiparticle.py checks that), and a parallel region
@@ -31,7 +31,7 @@ from minidem.scene import scenario
 from minidem.engine import simulation
 from minidem.engine import checkpoint
 
-SETTLE = REPO / "scenarios" / "settle.toml"
+SETTLE = REPO / "scenarios" / "bench" / "settle.toml"
 # 300 spheres in 4 layers falling into a 20 mm box (the scene of test_multiparticle.py)
 SMALL_SETTLE = ["fill.0.jitter=0.0", "fill.0.count=300", "walls.0.upper=[0.02, 0.02, 1.0]",
                 "fill.0.upper=[0.02, 0.02, 1.0]", "run.threads=1"]

@@ -31,7 +31,7 @@ from minidem.engine import checkpoint, simulation
 from minidem.scene import scenario
 
 SCENARIOS = REPO / "scenarios"
-SETTLE = SCENARIOS / "settle.toml"
+SETTLE = SCENARIOS / "bench" / "settle.toml"
 TWO_SPHERES = SCENARIOS / "two_spheres_head_on.toml"
 # 300 spheres in 4 layers falling into a 20 mm box (as tests/test_faults.py: same kernel)
 SMALL_SETTLE = ["fill.0.jitter=0.0", "fill.0.count=300", "walls.0.upper=[0.02, 0.02, 1.0]",

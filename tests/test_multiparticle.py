@@ -232,7 +232,7 @@ def test_settle_benchmark_scene_comes_to_rest_inside_the_box():
     # The scene exactly as benchmarked (N = 2,000, jitter, 10,000 steps of 2e-5 s):
     # kinetic energy below 1e-6 of its peak at the end, nobody below the floor or outside
     # the walls (overlaps a small fraction of the radius).
-    scene = scenario.load_scene("scenarios/settle.toml", ONE_THREAD)
+    scene = scenario.load_scene("scenarios/bench/settle.toml", ONE_THREAD)
     settled = simulation.Simulation(scene).run()
     assert settled.steps == 10_000 and scene.n_particles == 2000
     peak = settled.energy[:, 1].max()
@@ -260,7 +260,7 @@ def test_deep_pile_comes_to_rest_except_its_loose_spheres():
     # at most one neighbour; docs/multi-particle.md). What must hold: the energy falls by
     # more than 1e3, the spheres held by three or more contacts (the pile itself) are at
     # rest to 1e-6 of the peak, and what is left is in the loose ones.
-    scene = scenario.load_scene("scenarios/settle.toml", DEEP_PILE + ["run.end_time=0.5"] + ONE_THREAD)
+    scene = scenario.load_scene("scenarios/bench/settle.toml", DEEP_PILE + ["run.end_time=0.5"] + ONE_THREAD)
     sim = simulation.Simulation(scene)
     result = sim.run()
     peak = result.energy[:, 1].max()
@@ -278,6 +278,26 @@ def test_deep_pile_comes_to_rest_except_its_loose_spheres():
         assert np.all(position[:, axis] + radius < 0.02 + 0.05 * radius)
 
 
+def test_settle_pile_with_rolling_and_twisting_resistance_comes_to_rest():
+    # scenarios/settle.toml, the pile a newcomer runs, at 300 spheres (the deep pile's
+    # size, ~4 layers) for 0.4 s: with rolling (EPSD) and twisting (SDS) resistance the
+    # modes the test above leaves alive (rolling on the floor or round a neighbour,
+    # spinning about the normal) are dissipated too, and the kinetic energy falls below
+    # 1e-8 of its peak (issue 14; measured 4e-18 at 0.375 s, where the paper's laws alone
+    # stay near 1e-4). Nobody below the floor or outside the box.
+    scene = scenario.load_scene("scenarios/settle.toml", ["fill.0.count=300", "run.end_time=0.4"] + ONE_THREAD)
+    result = simulation.Simulation(scene).run()
+    peak = result.energy[:, 1].max()
+    assert peak > 0
+    assert result.energy[-1, 1] < 1e-8 * peak
+    radius, position = scene.radius, result.position
+    assert position[:, 2].max() > 6 * radius[0]  # a pile of several layers, not a floor
+    assert np.all(position[:, 2] - radius > -0.05 * radius), "below the floor"
+    for axis in (0, 1):
+        assert np.all(position[:, axis] - radius > -0.05 * radius)
+        assert np.all(position[:, axis] + radius < 0.02 + 0.05 * radius)
+
+
 def test_history_survives_neighbour_list_rebuilds_bit_for_bit():
     # A skin of 10 um rebuilds the list every few steps while spheres are in sustained
     # frictional contact; with a 20 mm skin it is built once. Contacts, their order of
@@ -285,7 +305,7 @@ def test_history_survives_neighbour_list_rebuilds_bit_for_bit():
     base = DEEP_PILE[1:] + ["fill.0.count=100", "run.end_time=0.06"] + ONE_THREAD
     results = {}
     for skin in (1e-5, 2e-2):
-        scene = scenario.load_scene("scenarios/settle.toml", base + [f"run.skin={skin}"])
+        scene = scenario.load_scene("scenarios/bench/settle.toml", base + [f"run.skin={skin}"])
         results[skin] = simulation.Simulation(scene).run()
     many, once = results[1e-5], results[2e-2]
     assert many.neighbour_builds > 100 and once.neighbour_builds == 1
@@ -302,7 +322,7 @@ def test_same_bits_on_one_and_two_threads(monkeypatch):
     base = DEEP_PILE[1:] + ["fill.0.count=200", "run.end_time=0.012", "output.vtk=false"]
 
     def run(threads):
-        return simulation.Simulation(scenario.load_scene("scenarios/settle.toml",
+        return simulation.Simulation(scenario.load_scene("scenarios/bench/settle.toml",
                                                          base + [f"run.threads={threads}"])).run()
 
     # a scene this small runs its loops on one thread (one fused pass) whatever run.threads says
@@ -327,7 +347,7 @@ def test_second_pass_is_shared_evenly_between_the_threads():
     alone there (kernel.defer_finishing). Which pass finishes a particle changes no bit:
     test_same_bits_on_one_and_two_threads runs it."""
     kernel = simulation.Simulation(scenario.load_scene(
-        "scenarios/settle.toml", DEEP_PILE[1:] + ["fill.0.count=200", "output.vtk=false"])).kernel
+        "scenarios/bench/settle.toml", DEEP_PILE[1:] + ["fill.0.count=200", "output.vtk=false"])).kernel
     # three blocks of 6: block 1 has 3 particles listed by a row of block 0, block 2 has 1
     first_partner = np.arange(18)
     first_partner[[6, 7, 8]] = 2
@@ -375,7 +395,7 @@ def test_vtk_series_reads_back_with_meshio_and_vtk(tmp_path):
 
     from minidem.results.vtk import SimulationFrames
 
-    scene = scenario.load_scene("scenarios/settle.toml", DEEP_PILE[1:] + [
+    scene = scenario.load_scene("scenarios/bench/settle.toml", DEEP_PILE[1:] + [
         "fill.0.count=100", "run.end_time=0.03", "output.interval=0.006", "output.contacts=true", "run.threads=1"])
     sim = simulation.Simulation(scene)
     frames = SimulationFrames(sim, tmp_path)
@@ -417,7 +437,7 @@ def test_the_state_a_run_ends_in_is_always_a_frame(tmp_path):
     # that does not divide the run lost its end. Frames: every interval, then the end.
     from minidem.results.vtk import SimulationFrames
 
-    scene = scenario.load_scene("scenarios/settle.toml", DEEP_PILE[1:] + [
+    scene = scenario.load_scene("scenarios/bench/settle.toml", DEEP_PILE[1:] + [
         "fill.0.count=100", "run.end_time=0.01", "output.interval=0.006", "run.threads=1"])
     sim = simulation.Simulation(scene)
     frames = SimulationFrames(sim, tmp_path)
@@ -439,7 +459,7 @@ def test_a_parallel_run_reports_unrecorded_contact_peaks_as_null():
     # record peaks (a race between threads), so they are unknown, not zero
     from minidem.results import analysis
 
-    scene = scenario.load_scene("scenarios/settle.toml", DEEP_PILE[1:] + ["fill.0.count=100", "run.end_time=0.02"])
+    scene = scenario.load_scene("scenarios/bench/settle.toml", DEEP_PILE[1:] + ["fill.0.count=100", "run.end_time=0.02"])
     result = simulation.Simulation(scene, kernel_flags={"PARALLEL": True}).run()  # whatever the size threshold
     summary = analysis.summary(result)
     assert not result.contact_statistics and result.contacts > 0

@@ -123,6 +123,24 @@ def test_material_pair_value_is_used_for_that_pair(tmp_path):
     assert ratios["pair"] == pytest.approx(0.4, rel=1e-9)
 
 
+def test_a_paper_law_without_couples_is_that_law_itself():
+    # law = "hm" with no rolling or twisting part (or "none") runs the law itself: the same
+    # ContactLaw object, so the same kernel as before parts existed (bit for bit by
+    # construction); with a rolling part it is the law's force unchanged plus the couple.
+    registry = laws.registry()
+    hm = registry.entry("hm")
+    assert registry.law_with_parts(hm, {}) is hm
+    assert registry.law_with_parts(hm, {"rolling": "none", "twisting": "none"}) is hm
+    combined = registry.entry("hm+epsd").law
+    assert combined.couples and combined.constants[:len(hm.law.constants)] == hm.law.constants
+    assert combined.history[:len(hm.law.history)] == hm.law.history
+    assert registry.entry("ls+sds_rolling+sds_twisting").law.name == "ls+sds_rolling+sds_twisting"
+    # a part added to a combination or to a law with parts, as [contact] law = ... with rolling = ...
+    assert registry.with_parts(registry.entry("hertz+tsuji+mindlin"), {"rolling": "epsd"}).law.name \
+        == "hertz+tsuji+mindlin+epsd"
+    assert registry.with_parts(registry.entry("hm+epsd"), {"twisting": "marshall"}).law.name == "hm+epsd+marshall"
+
+
 @pytest.mark.parametrize("contact, expected", [
     ('normal = "hertz"\ndamping = "viscous"\ntangential = "mindlin"\nfriction = 0.1',
      ["contact", "damping part 'viscous' requires a 'linear' part", "'hertz' provides hertzian"]),
@@ -130,6 +148,9 @@ def test_material_pair_value_is_used_for_that_pair(tmp_path):
      ["contact", "needs a normal part", 'normal = "hertz"']),
     ('law = "hm"\ndamping = "viscous"\nfriction = 0.1',
      ["'hm' is a single law", "takes no damping part", "contact.damping"]),
+    ('law = "hm"\nrolling = "epsd"\nfriction = 0.1', ["law 'hm+epsd' needs parameter 'rolling_friction'"]),
+    ('law = "ls"\ntwisting = "marshall"\nfriction = 0.1\nnormal_stiffness = 1e6',
+     ["twisting part 'marshall' requires a 'hertzian' part", "'hooke' provides linear"]),
     ('law = "hertz+hooke"\nfriction = 0.1', ["two normal parts, 'hertz' and 'hooke'"]),
     ('normal = "herz"\nfriction = 0.1', ["unknown normal part 'herz'", "did you mean 'hertz'?", "hooke"]),
     ('normal = "mindlin"\nfriction = 0.1', ["'mindlin' is a tangential part, not a normal part"]),
@@ -306,9 +327,7 @@ poisson_ratio = 0.3
 density = 2500.0
 
 [contact]
-normal = "hertz"
-damping = "tsuji"
-tangential = "mindlin"
+{law}
 friction = 0.5
 restitution = 0.5
 {contact}
@@ -332,36 +351,52 @@ gravity = {gravity}
 """
 RADIUS, DENSITY, GRAVITY = 0.01, 2500.0, 9.81
 MASS = 4.0 / 3.0 * np.pi * RADIUS**3 * DENSITY
+HM_PARTS = 'normal = "hertz"\ndamping = "tsuji"\ntangential = "mindlin"'
 
 
-def rolling_run(tmp_path, contact, velocity=(0.0, 0.0, 0.0), spin=(0.0, 0.0, 0.0), end_time=0.1, slope_deg=0.0):
+def rolling_run(tmp_path, contact, velocity=(0.0, 0.0, 0.0), spin=(0.0, 0.0, 0.0), end_time=0.1, slope_deg=0.0,
+                law=HM_PARTS):
     slope = np.radians(slope_deg)  # an incline: gravity tilted about y, down the slope along +x
     gravity = [float(GRAVITY * np.sin(slope)), 0.0, float(-GRAVITY * np.cos(slope))]
     path = tmp_path / f"scene{len(list(tmp_path.iterdir()))}.toml"
-    path.write_text(ROLLING_SCENE.format(contact=contact, velocity=[float(v) for v in velocity],
+    path.write_text(ROLLING_SCENE.format(law=law, contact=contact, velocity=[float(v) for v in velocity],
                                          spin=[float(w) for w in spin], end_time=float(end_time), gravity=gravity))
     return simulation.Simulation(scenario.load_scene(path, [])).run()
 
 
-def test_constant_rolling_torque_stops_a_rolling_sphere_at_the_analytic_distance(tmp_path):
+# SDS rolling (LAMMPS' rolling sds): a stiff spring (k_roll R^2 = 0.1 N m/rad: a swing of
+# 24 ms about the contact point, I = 7/5 m R^2, against the stop time of 0.14 s; the
+# elastic roll it stores at the cap, mu_r R m g / (k_roll R^2) = 1 mrad, is 0.15 % of the
+# distance) damped at 0.3 of critical, so that its release at the stop is over in time.
+SDS_ROLLING = 'rolling = "sds_rolling"\nrolling_stiffness = 1000.0\nrolling_viscosity = {:.6g}'.format(
+    0.3 * 2.0 * np.sqrt(1.4 * MASS * RADIUS**2 * 1000.0 * RADIUS**2) / RADIUS**2)
+
+
+@pytest.mark.parametrize("rolling", ['rolling = "constant_torque"', SDS_ROLLING], ids=["constant_torque", "sds"])
+def test_rolling_couple_stops_a_rolling_sphere_at_the_analytic_distance(tmp_path, rolling):
     # Rolling without slip, v = w R, under the couple mu_r R Fn: (m + I/R^2) dv/dt = -mu_r m g,
-    # a = 5/7 mu_r g, so it stops after v0^2 / (2 a) = 7 v0^2 / (10 mu_r g) (Ai et al. 2011, model A)
+    # a = 5/7 mu_r g, so it stops after v0^2 / (2 a) = 7 v0^2 / (10 mu_r g) (Ai et al. 2011,
+    # model A). SDS slides at its cap mu_r R* Fn all the way (its spring is stiff), so the
+    # same distance holds for it (LAMMPS' rolling sds is Coulomb-capped at mu_roll Fn).
     mu_r, v0 = 0.1, 0.1
     stop_time = v0 / (5.0 / 7.0 * mu_r * GRAVITY)
-    result = rolling_run(tmp_path, f'rolling = "constant_torque"\nrolling_friction = {mu_r}',
+    result = rolling_run(tmp_path, f'{rolling}\nrolling_friction = {mu_r}',
                          velocity=(v0, 0.0, 0.0), spin=(0.0, v0 / RADIUS, 0.0), end_time=1.4 * stop_time)
     distance = 7.0 * v0**2 / (10.0 * mu_r * GRAVITY)
     assert result.position[0, 0] == pytest.approx(distance, rel=0.01)
     assert abs(result.velocity[0, 0]) < 0.01 * v0  # at rest, to the couple's chatter
 
 
-@pytest.mark.parametrize("factor", [0.8, 1.25])
-def test_epsd_holds_a_sphere_below_the_angle_its_rolling_friction_allows(tmp_path, factor):
+@pytest.mark.parametrize("factor, law", [(0.8, HM_PARTS), (1.25, HM_PARTS), (1.25, 'law = "hm"')],
+                         ids=["held", "released", "released-hm-law"])
+def test_epsd_holds_a_sphere_below_the_angle_its_rolling_friction_allows(tmp_path, factor, law):
     # On a slope theta a sphere held by friction needs the couple m g R sin(theta) about its
     # contact point: EPSD gives at most mu_r R m g cos(theta), so it holds for
     # tan(theta) < mu_r and rolls above, with dv/dt = 5/7 g (sin(theta) - mu_r cos(theta))
     # (Ai et al. 2011, model C). Flight during the landing (~20 ms of bounces, no friction)
-    # adds g sin(theta) dt, so the acceleration is measured from 40 ms on.
+    # adds g sin(theta) dt, so the acceleration is measured from 40 ms on. The paper's hm
+    # law (one part covering normal, damping and tangential) takes the rolling part as the
+    # parts hertz + tsuji + mindlin do (issue 14: "the paper's laws keep working unchanged").
     mu_r = 0.1
     theta = np.radians(factor * np.degrees(np.arctan(mu_r)))
     contact = f'rolling = "epsd"\nrolling_friction = {mu_r}'
@@ -369,28 +404,35 @@ def test_epsd_holds_a_sphere_below_the_angle_its_rolling_friction_allows(tmp_pat
         # held: the rolling spring's damped swing (eta_r = 0.3) has died out by 120 ms, and
         # then it does not creep: 0.1 micrometre in the next 120 ms, where a rolling sphere
         # would go 5/7 g (sin(theta) - ...) t^2 / 2, millimetres
-        earlier = rolling_run(tmp_path, contact, end_time=0.12, slope_deg=np.degrees(theta))
-        result = rolling_run(tmp_path, contact, end_time=0.24, slope_deg=np.degrees(theta))
+        earlier = rolling_run(tmp_path, contact, end_time=0.12, slope_deg=np.degrees(theta), law=law)
+        result = rolling_run(tmp_path, contact, end_time=0.24, slope_deg=np.degrees(theta), law=law)
         assert abs(result.position[0, 0] - earlier.position[0, 0]) < 1e-7
         assert abs(result.velocity[0, 0]) < 1e-6
     else:
-        earlier = rolling_run(tmp_path, contact, end_time=0.04, slope_deg=np.degrees(theta))
-        result = rolling_run(tmp_path, contact, end_time=0.1, slope_deg=np.degrees(theta))
+        earlier = rolling_run(tmp_path, contact, end_time=0.04, slope_deg=np.degrees(theta), law=law)
+        result = rolling_run(tmp_path, contact, end_time=0.1, slope_deg=np.degrees(theta), law=law)
         acceleration = (result.velocity[0, 0] - earlier.velocity[0, 0]) / 0.06
         assert acceleration == pytest.approx(5.0 / 7.0 * GRAVITY * (np.sin(theta) - mu_r * np.cos(theta)), rel=0.01)
 
 
-def test_marshall_twisting_stops_a_spinning_sphere_in_the_analytic_time(tmp_path):
-    # Spinning about the normal, the contact slides in torsion under the couple
-    # 2/3 mu Fn a (Hertz disc a = sqrt(R delta), delta = (m g / K)^(2/3), Fn = m g at rest):
-    # dw/dt = -M/I. The landing (bounces end after ~20 ms at e = 0.5) delays the decay,
-    # so the clock starts at t1 = 25 ms: w must reach 0 at t1 + w(t1) I / M, within 1 %.
+@pytest.mark.parametrize("twisting", ["marshall", "sds_twisting"])
+def test_twisting_stops_a_spinning_sphere_in_the_analytic_time(tmp_path, twisting):
+    # Spinning about the normal, the contact slides in torsion under a constant couple M,
+    # dw/dt = -M/I: Marshall's 2/3 mu Fn a (Hertz disc a = sqrt(R delta), delta =
+    # (m g / K)^(2/3), Fn = m g at rest); SDS's mu_tw Fn (LAMMPS' twisting sds, mu_tw a
+    # length; here 5e-5 m, its spring k_tw = 0.1 N m/rad reaching the cap within 0.05 ms). The
+    # landing (bounces end after ~20 ms at e = 0.5) delays the decay, so the clock starts
+    # at t1 = 25 ms: w must reach 0 at t1 + w(t1) I / M, within 1 %.
     mu, w0, t1 = 0.5, 1.0, 0.025
-    effective_modulus = 1e8 / (2.0 * (1.0 - 0.3**2))
-    overlap = (MASS * GRAVITY / (4.0 / 3.0 * effective_modulus * np.sqrt(RADIUS))) ** (2.0 / 3.0)
-    moment = 2.0 / 3.0 * mu * MASS * GRAVITY * np.sqrt(RADIUS * overlap)
+    if twisting == "marshall":
+        effective_modulus = 1e8 / (2.0 * (1.0 - 0.3**2))
+        overlap = (MASS * GRAVITY / (4.0 / 3.0 * effective_modulus * np.sqrt(RADIUS))) ** (2.0 / 3.0)
+        moment = 2.0 / 3.0 * mu * MASS * GRAVITY * np.sqrt(RADIUS * overlap)
+        contact = 'twisting = "marshall"'
+    else:
+        moment = 5e-5 * MASS * GRAVITY
+        contact = 'twisting = "sds_twisting"\ntwisting_stiffness = 0.1\ntwisting_friction = 5e-5'
     inertia = 0.4 * MASS * RADIUS**2
-    contact = 'twisting = "marshall"'
     spin_at_t1 = rolling_run(tmp_path, contact, spin=(0.0, 0.0, w0), end_time=t1).angular_velocity[0, 2]
     stop = t1 + spin_at_t1 * inertia / moment
     assert rolling_run(tmp_path, contact, spin=(0.0, 0.0, w0), end_time=0.99 * stop).angular_velocity[0, 2] \

@@ -90,17 +90,7 @@ def compose(parts: tuple[laws.ContactPart, ...], origins, defaults: Mapping[str,
     def prepare(pair, params):
         prepared: dict[str, dict] = {}
         out = {}
-        for part in parts:
-            values = {p.name: params.get(p.name) for p in part.parameters}
-            produced = part.prepare(pair, values, dict(prepared))
-            if not isinstance(produced, Mapping):
-                raise laws.LawError(f"part '{part.name}': prepare() must return a dict of constants, "
-                                    f"got {type(produced).__name__}")
-            missing = [c for c in part.constants if c not in produced]
-            if missing:
-                raise laws.LawError(f"part '{part.name}': prepare() did not return constants {missing}")
-            prepared[part.kind] = {c: float(produced[c]) for c in part.constants}
-            out.update({f"{part.kind}.{c}": v for c, v in prepared[part.kind].items()})
+        _prepare_parts(parts, pair, params, prepared, out)
         return out
 
     def contact_time(pair, named, effective_radius, effective_mass, normal_speed):
@@ -149,19 +139,26 @@ def compose(parts: tuple[laws.ContactPart, ...], origins, defaults: Mapping[str,
     )
 
 
+def _prepare_parts(parts, pair, params, prepared: dict, out: dict) -> None:
+    """Run each part's prepare in order (each sees what the kinds before it prepared, in
+    ``prepared``) and put its constants into ``out`` as ``kind.name``."""
+    for part in parts:
+        values = {p.name: params.get(p.name) for p in part.parameters}
+        produced = part.prepare(pair, values, dict(prepared))
+        if not isinstance(produced, Mapping):
+            raise laws.LawError(f"part '{part.name}': prepare() must return a dict of constants, "
+                                f"got {type(produced).__name__}")
+        missing = [c for c in part.constants if c not in produced]
+        if missing:
+            raise laws.LawError(f"part '{part.name}': prepare() did not return constants {missing}")
+        prepared[part.kind] = {c: float(produced[c]) for c in part.constants}
+        out.update({f"{part.kind}.{c}": v for c, v in prepared[part.kind].items()})
+
+
 def _generated_force(parts: tuple[laws.ContactPart, ...]):
     """Write (once) and import the module holding the combination's force function."""
-    from minidem.engine.simulation import _force_dependencies, cache_directory
-
     lines, imports = [], []
-    constant_at, history_at = 0, 0
-    call = {}
-    for part in parts:
-        module, attribute = laws.import_name(part.function, "function")
-        imports.append(f"from {module} import {attribute} as {part.kind}_part")
-        c_end, h_end = constant_at + len(part.constants), history_at + part.history_size
-        call[part.kind] = (f"constants[{constant_at}:{c_end}]", f"history[{history_at}:{h_end}]")
-        constant_at, history_at = c_end, h_end
+    call = _part_calls(parts, imports, 0, 0)
     lines.append("    elastic, stiffness, contact_radius = normal_part(\n"
                  f"        {call['normal'][0]}, effective_radius, effective_mass, normal_overlap, "
                  f"normal_overlap_increment, {call['normal'][1]})")
@@ -177,7 +174,29 @@ def _generated_force(parts: tuple[laws.ContactPart, ...]):
     else:
         lines.append("    ftx, fty, ftz = 0.0, 0.0, 0.0")
     couples = "rolling" in call or "twisting" in call
-    if couples:
+    _couple_lines(call, lines, imports)
+    lines.append("    return normal_force, ftx, fty, ftz" + (", mx, my, mz" if couples else ""))
+    return _load_force([p.name for p in parts], [p.function for p in parts], imports, lines, couples)
+
+
+def _part_calls(parts, imports: list, constant_at: int, history_at: int) -> dict:
+    """kind -> (its constants slice, its history slice) as generated source, the parts laid
+    side by side from the given offsets; appends each part's import to ``imports``."""
+    call = {}
+    for part in parts:
+        module, attribute = laws.import_name(part.function, "function")
+        imports.append(f"from {module} import {attribute} as {part.kind}_part")
+        c_end, h_end = constant_at + len(part.constants), history_at + part.history_size
+        call[part.kind] = (f"constants[{constant_at}:{c_end}]", f"history[{history_at}:{h_end}]")
+        constant_at, history_at = c_end, h_end
+    return call
+
+
+def _couple_lines(call: dict, lines: list, imports: list) -> None:
+    """The generated lines of the rolling and twisting parts named in ``call`` (kind ->
+    (constants slice, history slice)); they read normal, stiffness, contact_radius and
+    normal_force from the lines before them."""
+    if "rolling" in call or "twisting" in call:
         imports.append("from minidem.contact.compose import split_spin")
         lines.append("    rolling_velocity, twisting_velocity = split_spin(relative_spin, normal)")
         lines.append("    mx, my, mz = 0.0, 0.0, 0.0")
@@ -191,8 +210,13 @@ def _generated_force(parts: tuple[laws.ContactPart, ...]):
                      "normal_overlap, contact_radius, stiffness, normal_force, twisting_velocity * dt,\n"
                      f"        twisting_velocity, {call['twisting'][1]})")
         lines.append("    mx, my, mz = mx + twist * normal[0], my + twist * normal[1], mz + twist * normal[2]")
-    lines.append("    return normal_force, ftx, fty, ftz" + (", mx, my, mz" if couples else ""))
-    combination = "+".join(p.name for p in parts)
+
+
+def _load_force(names: list[str], functions: list, imports: list, lines: list, couples: bool):
+    """Write (once) and import the generated force module of a combination."""
+    from minidem.engine.simulation import _force_dependencies, cache_directory
+
+    combination = "+".join(names)
     arguments = laws.FORCE_ARGUMENTS + (laws.COUPLE_ARGUMENTS if couples else ())
     source = (f'"""Generated by minidem.contact.compose: the force of the combination {combination}. Do not edit."""\n\n'
               "import numba\n\n" + "\n".join(imports) + "\n\n\n"
@@ -200,10 +224,10 @@ def _generated_force(parts: tuple[laws.ContactPart, ...]):
               f"def force({', '.join(arguments)}):\n" + "\n".join(lines) + "\n")
     # the module's name follows its source and the code of every function the parts call
     digest = hashlib.sha256(source.encode())
-    for part in parts:
-        digest.update(_force_dependencies(part.function)[0].encode())
+    for function in functions:
+        digest.update(_force_dependencies(function)[0].encode())
     digest.update(_GENERATOR_VERSION.encode())
-    module_name = f"minidem_combination_{'_'.join(p.name for p in parts)}_{digest.hexdigest()[:16]}"
+    module_name = f"minidem_combination_{'_'.join(names)}_{digest.hexdigest()[:16]}"
     if module_name not in sys.modules:
         path = cache_directory() / f"{module_name}.py"
         if not path.exists():  # written once, never touched again (numba keys its cache on the stamp)
@@ -216,6 +240,77 @@ def _generated_force(parts: tuple[laws.ContactPart, ...]):
         spec.loader.exec_module(module)
     return sys.modules[module_name].force
 
+
+
+def compose_with_law(law: laws.ContactLaw, normal: laws.ContactPart,
+                     parts: tuple[laws.ContactPart, ...]) -> laws.ContactLaw:
+    """A law (one part covering normal, damping and tangential: the paper's laws) with
+    rolling and/or twisting ``parts``. The law's force runs unchanged on its own
+    constants and history; ``normal`` (the law's ``normal_part``, reading the law's
+    leading constants) gives the couples the tangent stiffness and contact radius; the
+    couples get the law's total normal force. Constants and history: the law's, then the
+    parts' (``kind.name``)."""
+    leading = law.constants[:len(normal.constants)]
+    if leading != normal.constants or normal.history:
+        raise laws.LawError(f"law '{law.name}': its normal_part '{normal.name}' must have no history and constants "
+                            f"{list(normal.constants)} that are the law's first ones (the law's: {list(leading)})")
+    name = "+".join([law.name] + [p.name for p in parts])
+    parameters, seen = list(law.parameters), {p.name for p in law.parameters}
+    for part in parts:
+        for parameter in part.parameters:
+            if parameter.name not in seen:
+                seen.add(parameter.name)
+                parameters.append(parameter)
+            elif any(q.name == parameter.name and q != parameter for q in law.parameters):
+                raise laws.LawError(f"parameter '{parameter.name}' is declared by both '{law.name}' and "
+                                    f"'{part.name}' with different meanings")
+    constants = law.constants + tuple(f"{p.kind}.{c}" for p in parts for c in p.constants)
+    history = law.history + tuple(dataclasses.replace(slot, name=f"{p.kind}.{slot.name}")
+                                  for p in parts for slot in p.history)
+
+    def prepare(pair, params):
+        out = dict(law.prepare(pair, {p.name: params.get(p.name) for p in law.parameters}))
+        _prepare_parts(parts, pair, params, {"normal": {c: float(out[c]) for c in normal.constants}}, out)
+        return out
+
+    def own(named):
+        return {c: named[c] for c in law.constants}
+
+    contact_time = None if law.contact_time is None else (
+        lambda pair, named, radius, mass, speed: law.contact_time(pair, own(named), radius, mass, speed))
+    stiffness = None if law.stiffness is None else (
+        lambda pair, named, radius, mass, overlap: law.stiffness(pair, own(named), radius, mass, overlap))
+
+    module, attribute = laws.force_import_name(law)
+    imports = [f"from {module} import {attribute} as law_force"]
+    normal_module, normal_attribute = laws.import_name(normal.function, "function")
+    imports.append(f"from {normal_module} import {normal_attribute} as normal_part")
+    call = _part_calls(parts, imports, len(law.constants), law.history_size)
+    lines = [f"    normal_force, ftx, fty, ftz = law_force(\n        constants[0:{len(law.constants)}], "
+             "effective_radius, effective_mass, normal_overlap, normal_overlap_increment, normal_velocity,\n"
+             f"        tangential_increment, tangential_velocity, history[0:{law.history_size}])",
+             f"    elastic, stiffness, contact_radius = normal_part(\n        constants[0:{len(normal.constants)}], "
+             "effective_radius, effective_mass, normal_overlap, normal_overlap_increment, "
+             f"history[{law.history_size}:{law.history_size}])"]
+    _couple_lines(call, lines, imports)
+    lines.append("    return normal_force, ftx, fty, ftz, mx, my, mz")
+    force = _load_force([law.name, *(p.name for p in parts)], [law.force, normal.function]
+                        + [p.function for p in parts], imports, lines, True)
+    return laws.ContactLaw(
+        name=name,
+        description=f"{law.name} ({law.description}) + " + " + ".join(f"{p.kind} {p.name}" for p in parts),
+        parameters=tuple(parameters),
+        constants=constants,
+        history=history,
+        prepare=prepare,
+        force=force,
+        contact_time=contact_time,
+        frictional=law.frictional,
+        reference="; ".join(dict.fromkeys(r for r in (law.reference, *(p.reference for p in parts)) if r)),
+        stiffness=stiffness,
+        couples=True,
+        parts=tuple(parts),
+    )
 
 
 @numba.njit(cache=True, inline="always")

@@ -172,6 +172,10 @@ class ContactLaw:
                   largest normal and tangential tangent stiffnesses (N/m) at that overlap
                   and the normal damping ratio, for the time-step stability limit
                   (docs/time-step.md); Hertz-Mindlin's undamped values are used when absent
+    normal_part   optional name of a registered normal part whose constants are this
+                  law's first constants (same names) and whose elastic force is the law's:
+                  then ``law = NAME`` takes a rolling and a twisting part (``hm+epsd``),
+                  the part reading the normal stiffness and contact radius from it
     """
 
     name: str
@@ -188,6 +192,10 @@ class ContactLaw:
     stiffness: Callable | None = None
     couples: bool = False
     parts: tuple = ()  # a combination's ContactParts (set by minidem.contact.compose); () for a law
+    # the normal part whose function, given this law's leading constants, computes the
+    # law's elastic normal force, stiffness and contact radius: what lets a law (one part
+    # covering normal, damping and tangential) take a rolling or twisting part
+    normal_part: str = ""
     # a combination with a part acting beyond touch (set by compose): reach(pair, constants,
     # effective_radius) -> m, the separation (as a positive distance) up to which a contact lives
     reach: Callable | None = None
@@ -551,6 +559,54 @@ class LawRegistry:
                                                     " + ".join(v for _, v in dists))
         return self._combinations[key]
 
+    def with_parts(self, entry: RegisteredLaw, choice: Mapping[str, str]) -> RegisteredLaw:
+        """``entry`` (from ``entry()``) with the parts ``choice`` (kind -> part name) added
+        or replaced: a preset's or a combination's parts, or a law's rolling and twisting."""
+        preset = self.preset_of(entry)
+        if preset is not None:
+            return self.combination({**preset.parts, **choice}, preset.parameters)
+        own = {part.kind: part.name for part in entry.law.parts}
+        if "normal" in own:  # a combination of parts
+            return self.combination({**own, **choice})
+        if own:  # a law with rolling or twisting parts (law+part...)
+            return self.law_with_parts(self.entry(entry.law.name.split("+")[0]), {**own, **choice})
+        return self.law_with_parts(entry, choice)
+
+    def law_with_parts(self, entry: RegisteredLaw, choice: Mapping[str, str]) -> RegisteredLaw:
+        """A law (one part covering normal, damping and tangential) with a rolling and/or
+        a twisting part (``choice``: kind -> part name), composed once per process and
+        named ``law+part...`` (``hm+epsd``). Without such a part, the law itself: its
+        kernel is the one it always had. LawError when a part of another kind is chosen
+        or the law declares no ``normal_part`` to give the couples their normal force."""
+        from minidem.contact import compose
+
+        law = entry.law
+        couples = {kind: name for kind, name in choice.items() if name not in (None, "none")}
+        others = sorted(set(couples) - {"rolling", "twisting"})
+        if others:
+            raise LawError(
+                f"'{law.name}' is a single law (normal, damping and tangential in one part): it takes no "
+                f"{' or '.join(others)} part (only a rolling and a twisting part). Compose the law of parts instead (normal = ..., "
+                f"damping = ..., tangential = ...; `minidem laws` lists them), or drop "
+                f"{', '.join('contact.' + k for k in others)}")
+        if not couples:
+            return entry
+        parts = tuple(self.part(kind, couples[kind]) for kind in KINDS if kind in couples)
+        if not law.normal_part or law.normal_part not in self._parts:
+            raise LawError(f"law '{law.name}' declares no normal part (ContactLaw.normal_part) to give a rolling or "
+                           f"twisting part its normal stiffness and contact radius: it takes no "
+                           f"{' or '.join(couples)} part; compose the law of parts instead")
+        normal = self._parts[law.normal_part][0]
+        compose.check_combination((normal,) + parts)
+        key = "+".join([law.name] + [p.name for p in parts])
+        if key not in self._combinations:
+            origins = [(entry.plugin, entry.distribution, entry.version)] + [self._parts[p.name][1] for p in parts]
+            combined = compose.compose_with_law(law, normal, parts)
+            dists = dict.fromkeys((o[1], o[2]) for o in origins)
+            self._combinations[key] = RegisteredLaw(combined, ", ".join(dict.fromkeys(o[0] for o in origins)),
+                                                    " + ".join(d for d, _ in dists), " + ".join(v for _, v in dists))
+        return self._combinations[key]
+
     # -- the object plugins receive in minidem_register_laws(registry) -------------
     def add(self, law: ContactLaw | ContactPart | Preset) -> None:
         """Register a law, a part or a preset; a declaration that fails the checks is
@@ -629,6 +685,11 @@ class LawRegistry:
             return self._laws[key]
         if key in self._aliases:
             return self._laws[self._aliases[key]]
+        if isinstance(key, str) and "+" in key:
+            first, *rest = key.split("+")
+            law = self._owner(first)
+            if law is not None:  # a law with rolling and twisting parts ("hm+epsd")
+                return self.law_with_parts(law, self._choice_of(rest))
         if isinstance(key, str) and ("+" in key or key in self._parts):  # a combination (of one part: "jkr")
             return self.combination(self._choice_of(key.split("+")))
         preset = self._preset(key)

@@ -73,7 +73,7 @@ STABILITY_SAFETY = 0.2
 
 # particle-steps between two copies of the last good state (small scenes: a copy has a
 # fixed cost besides the arrays), and at least SNAPSHOT_STEPS steps: a copy costs a step
-# or less at any N (settle.toml, N = 2000: 0.13 ms a copy, 0.5 ms a step; N = 20,000:
+# or less at any N (bench/settle.toml, N = 2000: 0.13 ms a copy, 0.5 ms a step; N = 20,000:
 # 2.2 ms, 1.5-3 ms), so about 1 % of the run
 SNAPSHOT_PARTICLE_STEPS = 200_000
 SNAPSHOT_STEPS = 100

@@ -211,6 +211,32 @@ def pair_rebound(result: RunResult, i: int = 0, j: int = 1) -> dict:
     return out
 
 
+def heap_angle_deg(position, radius: float, low: float = 0.2, high: float = 0.8) -> float:
+    """The angle of repose (degrees) of a heap spread along +x from its highest point, from
+    the final particle positions: the free surface is the highest sphere top in each
+    column of width one diameter along x; the angle is that of the least-squares line
+    through the surface points downstream of the summit whose height lies between
+    ``low`` and ``high`` of the summit's (the flat top and the foot's loose spheres left
+    out). NaN when fewer than three surface points are on the slope."""
+    position = np.asarray(position, dtype=np.float64)
+    x, top = position[:, 0], position[:, 2] + radius
+    column = np.floor((x - x.min()) / (2.0 * radius)).astype(np.int64)
+    surface_x, surface_z = [], []
+    for c in np.unique(column):
+        inside = column == c
+        highest = np.argmax(np.where(inside, top, -np.inf))
+        surface_x.append(x[highest])
+        surface_z.append(top[highest])
+    surface_x, surface_z = np.array(surface_x), np.array(surface_z)
+    summit = int(np.argmax(surface_z))
+    height = surface_z[summit]
+    slope = (surface_x > surface_x[summit]) & (surface_z > low * height) & (surface_z < high * height)
+    if slope.sum() < 3:
+        return math.nan
+    gradient = np.polyfit(surface_x[slope], surface_z[slope], 1)[0]
+    return math.degrees(math.atan(-gradient))
+
+
 # ---------------------------------------------------------------------------------
 # Chung & Ooi (2011) measures: one sphere on its [impact] wall, or two spheres
 # ---------------------------------------------------------------------------------

@@ -73,8 +73,11 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
             "replaces the preset's part"),
         Key("damping", "str", None, "", "damping part (e.g. \"tsuji\", \"viscous\") or \"none\""),
         Key("tangential", "str", None, "", "tangential part (e.g. \"mindlin\", \"linear_history\") or \"none\""),
-        Key("rolling", "str", None, "", "rolling-resistance part (e.g. \"epsd\", \"constant_torque\") or \"none\""),
-        Key("twisting", "str", None, "", "twisting-resistance part (e.g. \"marshall\") or \"none\""),
+        Key("rolling", "str", None, "", "rolling-resistance part (\"epsd\", \"sds_rolling\", \"constant_torque\") "
+            "or \"none\"; with a combination of parts or with a paper law (`law = \"hm\"`, which takes a rolling "
+            "and a twisting part but no other)"),
+        Key("twisting", "str", None, "", "twisting-resistance part (\"marshall\", \"sds_twisting\") or \"none\"; "
+            "as `rolling`"),
         Key("pairs", "table", None, "", "per-material-pair parameter values: `[contact.pairs.\"beads/steel\"]` "
             "friction = 0.5 (the two material names joined by '/', either order)"),
     ), "The contact law and its parameters (friction included): a law or preset by name (`law = "
@@ -549,14 +552,7 @@ def _contact_law(contact: dict, material_index: dict, raw_materials: dict, error
         if isinstance(values.get("law"), str):
             entry = registry.entry(values["law"])
             if chosen:
-                preset = registry.preset_of(entry)
-                if preset is None:
-                    raise laws.LawError(
-                        f"'{entry.law.name}' is a single law (normal, damping and tangential in one part): it takes "
-                        f"no {' or '.join(chosen)} part. Compose the law of parts instead (normal = ..., "
-                        f"damping = ..., tangential = ...; `minidem laws` lists them), or drop "
-                        f"{', '.join('contact.' + k for k in chosen)}")
-                entry = registry.combination({**preset.parts, **chosen}, preset.parameters)
+                entry = registry.with_parts(entry, chosen)
         elif chosen:
             if "normal" not in chosen:
                 raise laws.LawError("a law composed of parts needs a normal part: normal = \"hertz\" or \"hooke\" "

@@ -19,6 +19,8 @@ leaving the rest of the file alone) and PNG figures in ``docs/figures/``:
 
 The ``multi-particle`` section (the settle scene beside LIGGGHTS) is measured by
 ``minidem.studies.bench_multi``; it runs only when asked for (``--only multi-particle``).
+The ``compile`` section (``minidem.studies.bench_compile``: the compile time of each
+shipped law and combination of parts) likewise runs only when asked for (``--only compile``).
 """
 
 from __future__ import annotations
@@ -538,12 +540,13 @@ def section_sweep(timing: dict, command: str, load=None) -> str:
     return "\n".join(lines)
 
 
-SECTION_ORDER = ("single-impact", "work-precision", "model-only", "sweep-timing", "multi-particle")
+SECTION_ORDER = ("single-impact", "work-precision", "model-only", "sweep-timing", "multi-particle", "compile")
 _HEADINGS = {"single-impact": "## Single impact: engine error against the reference",
              "work-precision": "## Work-precision (single impact)",
              "model-only": "## Model only what a scene needs",
              "sweep-timing": "## Paper sweep timing",
-             "multi-particle": "## Multi-particle throughput"}
+             "multi-particle": "## Multi-particle throughput",
+             "compile": "## Compile time of each contact model"}
 
 
 def update_sections(path: Path, sections: dict[str, str]) -> None:
@@ -597,6 +600,11 @@ def run(quick: bool = False, docs: Path = DOCS, sections=ALL_SECTIONS, echo=prin
 
         echo("bench: multi-particle throughput (settle scene, minidem and LIGGGHTS interleaved)")
         texts["multi-particle"] = bench_multi.run(1 if quick else 3, command, stamp, echo)
+    if "compile" in sections:
+        from minidem.studies import bench_compile
+
+        echo("bench: compile time of each shipped law and combination (fresh processes)")
+        texts["compile"] = bench_compile.run(command, stamp, echo)
     if "sweep-timing" in sections:
         echo("bench: paper sweep, cold and warm (fresh processes)")
         timing = sweep_timing(settings["cold_repeats"], settings["warm_repeats"], settings["sweep_workers"])

@@ -1,6 +1,6 @@
 """``minidem bench --only multi-particle``: throughput of the "settle" scene beside LIGGGHTS.
 
-The scene is ../shared/bench/settle.md (``scenarios/settle.toml``): variants "lattice" and
+The scene is ../shared/bench/settle.md (``scenarios/bench/settle.toml``): variants "lattice" and
 "jitter", N = 2,000 and 20,000, 10,000 steps of 2e-5 s. Every run is a fresh process, so
 its peak memory is that process's own (``ru_maxrss`` from ``os.wait4``). minidem runs on
 one and two threads; LIGGGHTS 3.8 (``liggghts`` on the PATH, Debian's package) runs the
@@ -26,7 +26,7 @@ from pathlib import Path
 from minidem.engine import simulation
 
 ROOT = Path(__file__).resolve().parents[2]
-SETTLE = ROOT / "scenarios" / "settle.toml"
+SETTLE = ROOT / "scenarios" / "bench" / "settle.toml"
 SHARED_BENCH = ROOT.parent / "shared" / "bench" / "liggghts"
 STEPS, DT = 10_000, 2e-5
 JITTER = {"lattice": 0.0, "jitter": 9e-5}  # m, as in settle.md and make_lattice.py
@@ -223,7 +223,7 @@ def section(results: dict, command: str, stamp) -> str:
         f"{', '.join(f'{x:.2f}' for x in load_end)} (the machine is shared: other jobs ran meanwhile; the "
         "ratios, measured interleaved, are the useful part).",
         "",
-        "Scene: `scenarios/settle.toml` = ../shared/bench/settle.md (Hertz + Mindlin no-slip with history, "
+        "Scene: `scenarios/bench/settle.toml` = ../shared/bench/settle.md (Hertz + Mindlin no-slip with history, "
         "e = 0.5, mu = 0.5, box of 5 planes, dt = 2e-5 s, 10,000 steps, skin 0.5 mm; start positions identical "
         "to the LIGGGHTS generator's). Each run is a fresh process; time = the step loop (set-up excluded; "
         "LIGGGHTS: its 'Loop time'); particle-steps/s = N x 10,000 / time; medians of "

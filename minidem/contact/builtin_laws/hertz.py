@@ -532,6 +532,7 @@ def _law(name, description, force, history, reference, aliases=(), extra=()):
         aliases=aliases,
         reference=reference,
         stiffness=hertz_stiffness,
+        normal_part="hertz",  # its first constant is the hertz part's 4/3 E*
     )
 
 

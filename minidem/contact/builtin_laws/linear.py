@@ -94,6 +94,7 @@ LS = ContactLaw(
     contact_time=linear_contact_time,
     stiffness=linear_stiffness,
     aliases=("linear_spring", "lsd"),
+    normal_part="hooke",  # its first constant is the hooke part's kn
     reference="Thornton, Cummins & Cleary (2011) section 3.2",
 )
 

@@ -88,7 +88,96 @@ EPSD = ContactPart(
 )
 
 
+LAMMPS = "LAMMPS GRANULAR pair style (Thompson et al. 2022, Comput. Phys. Commun. 271, 108171)"
+
+
+@numba.njit(cache=True, inline="always")
+def sds_rolling(constants, effective_radius, effective_mass, normal_overlap, contact_radius, normal_stiffness,
+                normal_force, rolling_increment, rolling_velocity, history):
+    """Spring-dashpot-slider (LAMMPS' rolling sds, Luding 2008): a rolling "force"
+    F_r = -k_roll xi - gamma_roll v_roll on the rolling displacement xi (the integral of
+    v_roll = R* w_r x n), capped as a whole at mu_r Fn, and the couple R* n x F_r. In
+    couple form, M = -k_roll R*^2 theta_r - gamma_roll R*^2 w_r with |M| <= mu_r R* Fn,
+    theta_r the rolling rotation; at the cap the spring is reset to M + gamma_roll R*^2 w_r
+    (the dashpot part of the capped couple is not stored)."""
+    radius2 = effective_radius * effective_radius
+    stiffness, viscosity = constants[0] * radius2, constants[1] * radius2
+    limit = constants[2] * effective_radius * max(normal_force, 0.0)
+    sx = history[0] - stiffness * rolling_increment[0]
+    sy = history[1] - stiffness * rolling_increment[1]
+    sz = history[2] - stiffness * rolling_increment[2]
+    mx = sx - viscosity * rolling_velocity[0]
+    my = sy - viscosity * rolling_velocity[1]
+    mz = sz - viscosity * rolling_velocity[2]
+    mx, my, mz, full = coulomb_cap(mx, my, mz, limit)
+    if full:  # the spring takes what the capped couple leaves after the dashpot
+        sx = mx + viscosity * rolling_velocity[0]
+        sy = my + viscosity * rolling_velocity[1]
+        sz = mz + viscosity * rolling_velocity[2]
+    history[0], history[1], history[2] = sx, sy, sz
+    return mx, my, mz
+
+
+SDS_ROLLING_CONSTANTS = ("rolling_stiffness", "rolling_viscosity", "rolling_friction")  # its parameters as given
+SDS_ROLLING = ContactPart(
+    name="sds_rolling",
+    kind="rolling",
+    description="spring-dashpot-slider (LAMMPS rolling sds): M = -R*^2 (k_roll theta_r + gamma_roll w_r) "
+                "capped as a whole at mu_r R* Fn",
+    parameters=(Parameter("rolling_stiffness", None, "N/m", "k_roll, the rolling spring on the rolling "
+                          "displacement R* theta_r (couple stiffness k_roll R*^2 N m/rad)", low=0.0, required=True),
+                Parameter("rolling_viscosity", 0.0, "N s/m", "gamma_roll, the rolling dashpot on R* w_r "
+                          "(couple gamma_roll R*^2 w_r)", low=0.0),
+                ROLLING_FRICTION),
+    constants=SDS_ROLLING_CONSTANTS,
+    history=(HistorySlot("rolling_spring_moment", "the spring's couple on the first body (N m)", vector=True),),
+    prepare=lambda pair, params, prepared: {name: params[name] for name in SDS_ROLLING_CONSTANTS},
+    function=sds_rolling,
+    energy=("store", "dissipate"),
+    reference=f"{LAMMPS}, rolling sds; Luding (2008), Granul. Matter 10, 235-246",
+)
+
+
 # -- twisting --------------------------------------------------------------------------
+@numba.njit(cache=True, inline="always")
+def sds_twisting(constants, effective_radius, effective_mass, normal_overlap, contact_radius, normal_stiffness,
+                 normal_force, twisting_increment, twisting_velocity, history):
+    """Spring-dashpot-slider about the normal (LAMMPS' twisting sds): M = -k_tw xi_tw -
+    gamma_tw w_t on the twist angle xi_tw, capped as a whole at mu_tw Fn (mu_tw a length);
+    at the cap the spring is reset to M + gamma_tw w_t."""
+    stiffness, viscosity = constants[0], constants[1]
+    limit = constants[2] * max(normal_force, 0.0)
+    spring = history[0] - stiffness * twisting_increment
+    moment = spring - viscosity * twisting_velocity
+    if abs(moment) > limit:
+        moment = math.copysign(limit, moment)
+        spring = moment + viscosity * twisting_velocity
+    history[0] = spring
+    return moment
+
+
+SDS_TWISTING_CONSTANTS = ("twisting_stiffness", "twisting_viscosity", "twisting_friction")  # as given
+SDS_TWISTING = ContactPart(
+    name="sds_twisting",
+    kind="twisting",
+    description="spring-dashpot-slider about the normal (LAMMPS twisting sds): M = -k_tw xi - gamma_tw w_t "
+                "capped at mu_tw Fn",
+    parameters=(Parameter("twisting_stiffness", None, "N m/rad", "k_tw, the twisting spring", low=0.0,
+                          required=True),
+                Parameter("twisting_viscosity", 0.0, "N m s/rad", "gamma_tw, the twisting dashpot", low=0.0),
+                Parameter("twisting_friction", None, "m", "mu_tw: the twisting couple is at most mu_tw Fn (a "
+                          "length, as LAMMPS' twisting sds; Coulomb friction over a contact disc of radius a "
+                          "gives 2/3 mu a)", low=0.0, required=True)),
+    constants=SDS_TWISTING_CONSTANTS,
+    history=(HistorySlot("twisting_spring_moment", "the spring's couple about the normal on the first body (N m)"),),
+    prepare=lambda pair, params, prepared: {name: params[name] for name in SDS_TWISTING_CONSTANTS},
+    function=sds_twisting,
+    energy=("store", "dissipate"),
+    reference=f"{LAMMPS}, twisting sds; Luding (2008), Granul. Matter 10, 235-246",
+)
+
+
+
 @numba.njit(cache=True, inline="always")
 def marshall_twisting(constants, effective_radius, effective_mass, normal_overlap, contact_radius, normal_stiffness,
                       normal_force, twisting_increment, twisting_velocity, history):
@@ -119,4 +208,4 @@ MARSHALL = ContactPart(
     reference="Marshall (2009), J. Comput. Phys. 228, 1541-1561; Deresiewicz (1954) for the 2/3 mu Fn a limit",
 )
 
-PARTS = [CONSTANT_TORQUE, EPSD, MARSHALL]
+PARTS = [CONSTANT_TORQUE, EPSD, SDS_ROLLING, MARSHALL, SDS_TWISTING]
