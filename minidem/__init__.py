@@ -9,8 +9,8 @@ Data flows one way, and the subpackages follow it:
 
 below them ``geometry/`` (contact geometry, neighbour search, wall shapes) and
 ``files`` (atomic writes), beside them the contact-model plugin API (``contact``:
-laws, parts, presets, the hook, the built-in laws); ``cli`` on top. No module imports one of a later
-stage.
+laws, parts, presets, the hook, the built-in laws); ``api`` (the Python API,
+docs/python-api.md) and ``cli`` on top. No module imports one of a later stage.
 """
 
 __version__ = "0.1.0"
