@@ -30,7 +30,7 @@ import numpy as np
 
 from minidem import __version__
 from minidem.contact import laws
-from minidem.engine import integrate, kernel
+from minidem.engine import blocks, compile_speed, integrate, kernel
 from minidem.errors import MinidemError
 from minidem.geometry import neighbours, primitives
 from minidem.scene import derived
@@ -44,6 +44,9 @@ from minidem.scene.scenario import Scene, ScenarioError
 # the explicit blocks of the kernel: results are the same bits on any layer.
 if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
     numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
+# numba's inliner copies each inlined function's IR once instead of once per basic block
+# (the same machine code; a third less CPU in a first run: minidem.engine.compile_speed)
+compile_speed.install()
 
 _TEMPLATE = Path(kernel.__file__)
 _BLOCK_START = "# >>> specialisation block"
@@ -63,7 +66,7 @@ PARALLEL_ABOVE = 16
 # (The run.threads text in minidem/scene/scenario.py names this number.)
 PARALLEL_MIN_PARTICLES = 5000
 # scene-shape flags of the kernel specialisation block, in order
-KERNEL_FLAGS = ("SPIN", "PAIRS", "CYLINDERS", "MESHES", "PARALLEL")
+KERNEL_FLAGS = ("SPIN", "PAIRS", "CYLINDERS", "MESHES", "PARALLEL", "TRACK")
 # Automatic time step (docs/time-step.md): the smallest of the accuracy step (contact
 # time / steps_per_contact) and these fractions of the Rayleigh time and of the
 # integrator's stability limit
@@ -237,11 +240,14 @@ def _engine_hash() -> str:
 
 
 def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, cylinders: bool = False,
-                   meshes: bool = False, parallel: bool = False, integrator: str = "velocity_verlet"):
+                   meshes: bool = False, parallel: bool = False, track: bool = True,
+                   integrator: str = "velocity_verlet"):
     """Return the kernel module specialised for ``entry.law``, a scene shape and an
     integrator (compiled lazily, cached on disk). Integrators with the same kick split
     (velocity Verlet and analytic flight) share one kernel."""
-    flags = dict(zip(KERNEL_FLAGS, (bool(spin), bool(pairs), bool(cylinders), bool(meshes), bool(parallel))))
+    track = track and not parallel  # a parallel loop cannot record contact statistics
+    flags = dict(zip(KERNEL_FLAGS, (bool(spin), bool(pairs), bool(cylinders), bool(meshes), bool(parallel),
+                                    bool(track))))
     law = entry.law
     # a law with rolling or twisting parts takes the relative spin and returns a couple
     flags["COUPLES"] = bool(law.couples)
@@ -470,7 +476,13 @@ class Simulation:
         self.spin = any(self.law.is_frictional(params)
                         for params in (scene.law_parameters, *scene.pair_parameters.values()))
         self.pairs = scene.n_particles > 1
-        self.parallel = scene.n_particles > PARALLEL_ABOVE and scene.stop != "separation"
+        # contact statistics and the probe: small scenes and runs to separation (serial loop)
+        self.track = scene.n_particles <= PARALLEL_ABOVE or scene.stop == "separation"
+        # the threaded loops only where a second thread can run them: a scene below
+        # PARALLEL_MIN_PARTICLES runs on one thread whatever run.threads says, and the
+        # serial kernel does the same operations in the same order (the same bits) without
+        # numba's parallel pipeline, a third of the CPU time of its first run (settle.toml)
+        self.parallel = not self.track and scene.n_particles >= PARALLEL_MIN_PARTICLES
         self.skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
         # what the values imply (constants, contact time, dt, step count), checked before
         # the kernel is compiled: out of float64 range is bad input naming the keys
@@ -487,11 +499,13 @@ class Simulation:
         self.spin = forced.get("SPIN", self.spin)
         self.pairs = forced.get("PAIRS", self.pairs)
         self.parallel = forced.get("PARALLEL", self.parallel)
+        self.track = self.track and not self.parallel  # a parallel loop cannot record them
         with _notice_if_slow(notify, f"compiling (or loading from the cache) the kernel of law '{self.law.name}' "
                              "for this scene: a first run of a law and scene shape takes a minute or so"):
             self.kernel = compile_kernel(self.entry, self.spin, self.pairs,
                                          forced.get("CYLINDERS", scene.walls.cylinder_base.shape[0] > 0),
                                          forced.get("MESHES", scene.walls.triangles.shape[0] > 0), self.parallel,
+                                         self.track,
                                          scene.integrator)
 
     # -- constants -------------------------------------------------------------
@@ -932,12 +946,15 @@ class _RunLoop:
         threads = threads or self.loop_threads.current
         # every parallel loop of the chunk (the opening kick_drift too) on that many
         numba.set_num_threads(threads)
+        # a serial kernel runs its particle loops on one thread, whatever it is told
+        bounds, first_partner = blocks.blocks(threads if sim.parallel else 1, state.planes, state.pairs,
+                                              state.position.shape[0])
         return self.kernel.advance(
             state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
             self.scene.gravity, state.position_at_build, self.half_skin_squared, sim.dt if dt is None else dt,
             self.start_time, start_step, n_steps, completing,
             self.stop_at_separation if stop_at_separation is None else stop_at_separation, trace, self.tracking,
-            threads)
+            threads, bounds, first_partner)
 
     def start(self):
         """The state at the first step: fresh (initial forces) or the checkpoint resumed."""
@@ -1204,7 +1221,7 @@ class _RunLoop:
             trace=np.concatenate(self.trace_chunks) if self.trace_chunks else None, force=state.force,
             torque=state.torque, contacts=state.count_contacts(), neighbour_builds=state.builds,
             threads=self.loop_threads.most_used(), thread_steps=dict(self.loop_threads.steps),
-            energy=np.array(self.energy), contact_statistics=not sim.parallel,
+            energy=np.array(self.energy), contact_statistics=sim.track,
             gravity_work_max=self.loop["gravity_work_max"], supply_budget=sim.supply_budget,
         )
 
