@@ -30,7 +30,7 @@ import numpy as np
 
 from minidem import __version__
 from minidem.contact import laws
-from minidem.engine import blocks, compile_speed, integrate, kernel
+from minidem.engine import blocks, compile_speed, integrate, kernel, warmup
 from minidem.errors import MinidemError
 from minidem.geometry import neighbours, primitives
 from minidem.scene import derived
@@ -942,19 +942,36 @@ class _RunLoop:
     def call(self, start_step, n_steps, completing, trace, threads=None, dt=None, stop_at_separation=None):
         """``n_steps`` compiled steps from ``start_step``; returns (steps taken, whether the
         neighbour list must be rebuilt first)."""
-        state, sim = self.state, self.sim
         threads = threads or self.loop_threads.current
         # every parallel loop of the chunk (the opening kick_drift too) on that many
         numba.set_num_threads(threads)
+        return self.kernel.advance(*self.arguments(start_step, n_steps, completing, trace, threads, dt,
+                                                   stop_at_separation))
+
+    def arguments(self, start_step, n_steps, completing, trace, threads, dt=None, stop_at_separation=None,
+                  one_block=False):
+        """The arguments of the kernel's ``advance`` (``one_block``: the blocks of one
+        thread, whatever ``threads`` says: for their types alone)."""
+        state, sim = self.state, self.sim
         # a serial kernel runs its particle loops on one thread, whatever it is told
-        bounds, first_partner = blocks.blocks(threads if sim.parallel else 1, state.planes, state.pairs,
-                                              state.position.shape[0])
-        return self.kernel.advance(
-            state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
-            self.scene.gravity, state.position_at_build, self.half_skin_squared, sim.dt if dt is None else dt,
-            self.start_time, start_step, n_steps, completing,
-            self.stop_at_separation if stop_at_separation is None else stop_at_separation, trace, self.tracking,
-            threads, bounds, first_partner)
+        bounds, first_partner = blocks.blocks(threads if sim.parallel and not one_block else 1, state.planes,
+                                              state.pairs, state.position.shape[0])
+        return (state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
+                self.scene.gravity, state.position_at_build, self.half_skin_squared, sim.dt if dt is None else dt,
+                self.start_time, start_step, n_steps, completing,
+                self.stop_at_separation if stop_at_separation is None else stop_at_separation, trace,
+                self.tracking, threads, bounds, first_partner)
+
+    def compile_kernel(self):
+        """Compile (or load from the cache) the kernel's ``advance`` for the types of its
+        arguments, before the neighbour lists exist (their arrays' types do not change
+        when they are built): the helper (``minidem.engine.warmup``) meanwhile compiles
+        the neighbour search the first list needs."""
+        advance = self.kernel.advance
+        if hasattr(advance, "compile"):  # a test may put a plain function there
+            args = self.arguments(0, 1, True, self.no_trace, self.loop_threads.current, dt=0.0,
+                                  stop_at_separation=False, one_block=True)
+            advance.compile(tuple(advance.typeof_pyval(arg) for arg in args))
 
     def start(self):
         """The state at the first step: fresh (initial forces) or the checkpoint resumed."""
@@ -969,14 +986,20 @@ class _RunLoop:
                 self.trace_chunks.append(arrays["trace"])
             if self.saves_series:
                 self.on_frame.restore(meta["frames_series"], loop["frames"])
-        elif sim.pairs or state.meshes[0].shape[0]:
-            sim.rebuild(state)
+        meshes = state.meshes[0].shape[0] > 0
+        # on a fresh install the engine's shared functions compile in a helper process
+        # beside the kernel (nothing is started when they are cached)
+        helper = warmup.start(sim.pairs, meshes)
         try:
-            # the one compilation of this kernel (numba compiles on the first call), reported
-            # against the law that caused it; a user waiting for it is told what it is
+            # the one compilation of this kernel, reported against the law that caused it; a
+            # user waiting for it is told what it is
             compiling = _notice_if_slow(sim.notify, f"compiling the kernel of law '{sim.law.name}' for this scene "
                                         f"shape; it is cached in {cache_directory()} for later runs")
             with compiling:
+                self.compile_kernel()
+                helper.wait()
+                if self.resume_from is None and (sim.pairs or meshes):
+                    sim.rebuild(state)
                 self.first_call()
         except numba.core.errors.NumbaError as exc:
             raise laws.LawError(f"law '{sim.law.name}' from plugin '{sim.entry.plugin}' "
