@@ -501,7 +501,7 @@ class Simulation:
         self.parallel = forced.get("PARALLEL", self.parallel)
         self.track = self.track and not self.parallel  # a parallel loop cannot record them
         with _notice_if_slow(notify, f"compiling (or loading from the cache) the kernel of law '{self.law.name}' "
-                             "for this scene: a first run of a law and scene shape takes a minute or so"):
+                             "for this scene"):
             self.kernel = compile_kernel(self.entry, self.spin, self.pairs,
                                          forced.get("CYLINDERS", scene.walls.cylinder_base.shape[0] > 0),
                                          forced.get("MESHES", scene.walls.triangles.shape[0] > 0), self.parallel,
