@@ -370,7 +370,7 @@ def test_a_scene_below_the_thread_threshold_gets_the_serial_untracked_kernel():
     scene = scenario.load_scene("scenarios/bench/settle.toml", base)
     assert simulation.PARALLEL_ABOVE < scene.n_particles < simulation.PARALLEL_MIN_PARTICLES
     serial = simulation.Simulation(scene)
-    assert not serial.parallel and not serial.track
+    assert serial.parallel and not serial.threaded  # the multi-particle path, serial loops
     assert serial.kernel.PARALLEL is False and serial.kernel.TRACK is False
     threaded = simulation.Simulation(scenario.load_scene("scenarios/bench/settle.toml", base),
                                      kernel_flags={"PARALLEL": True})

@@ -45,8 +45,8 @@ of consecutive particles per thread:
 Most particles are finished inside compute_forces, as soon as their own contacts are
 done, while their data are still in cache: legal for p when every row i < p that lists
 it (holds its reactions, reads its position) is in p's own block, done by then
-(``first_partner``, see ``minidem.engine.blocks``). On one thread that is every particle and the step is one pass; on
-two, finish_kick_drift is left with the particles that have a partner in the block
+(``first_partner``, see ``minidem.engine.blocks``). On one thread that is every particle
+and the step is one pass; on two, finish_kick_drift is left with the particles that have a partner in the block
 before theirs (about one layer of a pile), and each block leaves as many in all, taking
 its last particles to make up the number, so no thread waits alone on that pass
 (``minidem.engine.blocks.defer_finishing``).

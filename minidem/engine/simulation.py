@@ -476,13 +476,15 @@ class Simulation:
         self.spin = any(self.law.is_frictional(params)
                         for params in (scene.law_parameters, *scene.pair_parameters.values()))
         self.pairs = scene.n_particles > 1
-        # contact statistics and the probe: small scenes and runs to separation (serial loop)
-        self.track = scene.n_particles <= PARALLEL_ABOVE or scene.stop == "separation"
-        # the threaded loops only where a second thread can run them: a scene below
-        # PARALLEL_MIN_PARTICLES runs on one thread whatever run.threads says, and the
-        # serial kernel does the same operations in the same order (the same bits) without
-        # numba's parallel pipeline, a third of the CPU time of its first run (settle.toml)
-        self.parallel = not self.track and scene.n_particles >= PARALLEL_MIN_PARTICLES
+        # the multi-particle path, without contact statistics (only the serial loop of small
+        # scenes and of runs to separation records them: kernel flag TRACK)
+        self.parallel = scene.n_particles > PARALLEL_ABOVE and scene.stop != "separation"
+        # its particle loops threaded (prange) only where a second thread can run them: a
+        # scene below PARALLEL_MIN_PARTICLES runs on one thread whatever run.threads says,
+        # and the serial kernel does the same operations in the same order (the same bits)
+        # without numba's parallel pipeline, 33 of the 44 s of CPU of the first run of
+        # scenarios/settle.toml (kernel flag PARALLEL)
+        self.threaded = self.parallel and scene.n_particles >= PARALLEL_MIN_PARTICLES
         self.skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
         # what the values imply (constants, contact time, dt, step count), checked before
         # the kernel is compiled: out of float64 range is bad input naming the keys
@@ -499,13 +501,13 @@ class Simulation:
         self.spin = forced.get("SPIN", self.spin)
         self.pairs = forced.get("PAIRS", self.pairs)
         self.parallel = forced.get("PARALLEL", self.parallel)
-        self.track = self.track and not self.parallel  # a parallel loop cannot record them
+        self.threaded = forced.get("PARALLEL", self.threaded)
         with _notice_if_slow(notify, f"compiling (or loading from the cache) the kernel of law '{self.law.name}' "
                              "for this scene"):
             self.kernel = compile_kernel(self.entry, self.spin, self.pairs,
                                          forced.get("CYLINDERS", scene.walls.cylinder_base.shape[0] > 0),
-                                         forced.get("MESHES", scene.walls.triangles.shape[0] > 0), self.parallel,
-                                         self.track,
+                                         forced.get("MESHES", scene.walls.triangles.shape[0] > 0), self.threaded,
+                                         not self.parallel,
                                          scene.integrator)
 
     # -- constants -------------------------------------------------------------
@@ -954,7 +956,7 @@ class _RunLoop:
         thread, whatever ``threads`` says: for their types alone)."""
         state, sim = self.state, self.sim
         # a serial kernel runs its particle loops on one thread, whatever it is told
-        bounds, first_partner = blocks.blocks(threads if sim.parallel and not one_block else 1, state.planes,
+        bounds, first_partner = blocks.blocks(threads if sim.threaded and not one_block else 1, state.planes,
                                               state.pairs, state.position.shape[0])
         return (state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
                 self.scene.gravity, state.position_at_build, self.half_skin_squared, sim.dt if dt is None else dt,
@@ -1244,7 +1246,7 @@ class _RunLoop:
             trace=np.concatenate(self.trace_chunks) if self.trace_chunks else None, force=state.force,
             torque=state.torque, contacts=state.count_contacts(), neighbour_builds=state.builds,
             threads=self.loop_threads.most_used(), thread_steps=dict(self.loop_threads.steps),
-            energy=np.array(self.energy), contact_statistics=sim.track,
+            energy=np.array(self.energy), contact_statistics=not sim.parallel,
             gravity_work_max=self.loop["gravity_work_max"], supply_budget=sim.supply_budget,
         )
 
