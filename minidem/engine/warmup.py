@@ -9,14 +9,17 @@ survey and kinetic energy. Neither needs the other to compile (numba compiles ea
 function on its own and links only what it calls), so when the shared functions are not
 in numba's cache yet, :func:`start` compiles them in a second process while this one
 compiles the kernel, and the run loads them from the cache when it needs them
-(:func:`Helper.wait` first). First run of scenarios/settle.toml: ~9 s of neighbour
-search and guard compiled beside the kernel's ~7 s instead of after them (2-core AMD
-EPYC).
+(:func:`Helper.wait` first). What it takes off the critical path: ~1 s of CPU (the
+guard's survey and the kinetic energy) in the first run of scenarios/oblique.toml, ~3 s
+(also the history carry-over and the transposed index of the Verlet list) in that of
+scenarios/settle.toml, whose ``build_pairs`` is already compiled by then: the scene's
+check for overlapping spheres at t = 0 needs it before anything else (2-core AMD EPYC).
 
-Only the wall time changes: the same functions are compiled for the same argument
-types and the run loads the same machine code it would have compiled. A helper that
-cannot start, fails or compiled other types costs nothing but the overlap: the run
-then compiles whatever is missing itself, as before. Nothing is started when the shared
+Only the wall time changes (the CPU time grows by the helper's own start, ~0.5 s): the
+same functions are compiled for the same argument types and the run loads the same
+machine code it would have compiled. A helper that cannot start, fails or compiled
+other types costs only the CPU it used: the run then compiles whatever is missing
+itself, as before. Nothing is started when the shared
 functions are cached already (every run after the first), nor on a one-CPU machine.
 """
 

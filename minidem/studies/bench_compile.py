@@ -154,8 +154,10 @@ def section_scenes(rows: list[dict]) -> str:
              "written), on a fresh install's empty caches (`MINIDEM_CACHE_DIR` and `NUMBA_CACHE_DIR` new, "
              "empty folders): every kernel and engine function the scene needs is compiled. 'Warm' is the "
              "same command again on the caches the first run filled (the run itself, loading included). "
-             f"Medians of {rows[0]['rounds'] if rows else 0} rounds, scenes interleaved; CPU = user + "
-             "system time of the process. The difference cold - warm is what compiling costs.",
+             f"Medians of {rows[0]['rounds'] if rows else 0} round(s), scenes interleaved; CPU = user + "
+             "system time of the process and of the helper process that compiles the engine's shared "
+             "functions beside the kernel on a fresh install (minidem/engine/warmup.py). The difference "
+             "cold - warm is what compiling costs.",
              "", "| scene | cold wall s | cold CPU s | warm wall s | warm CPU s |", "|---|---|---|---|---|"]
     for row in rows:
         lines.append(f"| `{row['scene']}` | {row['cold_wall_s']:.1f} | {row['cold_cpu_s']:.1f} | "
