@@ -13,7 +13,9 @@ radius, E* the effective modulus, gamma the work of adhesion per unit area (J/m^
   The hysteresis (formed at touch, broken at d_c) dissipates the work of separation
       W_s = 0.663 pi gamma a_z^2,  a_z^3 = 2 pi gamma R*^2 / E*  (a at d = 0),
   the integral of -Fn from d_c to 0; a sphere hitting a wall elastically sticks when its
-  kinetic energy is below W_s (Thornton & Ning 1998): v_c = sqrt(2 W_s / m*).
+  kinetic energy is below W_s (Thornton & Ning 1998): v_c = sqrt(2 W_s / m*); for a
+  sphere of density rho on a wall their V_s = 1.84 (gamma^5 / (rho^3 E*^2 R^5))^(1/6)
+  (docs/laws.md: why the form quoted with the pull-off force and 1.84 is not the same).
 * DMT (Derjaguin, Muller & Toporov 1975; as LAMMPS' granular dmt):
       Fn = 4/3 E* sqrt(R*) d^1.5 - 2 pi gamma R*   while d > 0,
   formed and broken at touch; pull-off force 2 pi gamma R*.
