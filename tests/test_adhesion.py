@@ -1,11 +1,12 @@
 """Adhesive normal parts (issue 14): JKR's pull-off force, its break at the critical
 separation, the sticking of a sphere on a wall below the critical velocity of Thornton &
-Ning (1998) and its rebound above; DMT's pull-off; contacts living beyond touch in the
-neighbour list; the energy guard and ``minidem verify`` bounding what adhesion supplies.
+Ning (1998) and its rebound above; DMT's pull-off; the simplified JKR (sjkr) against its
+closed form; contacts living beyond touch in the neighbour list; the energy guard and
+``minidem verify`` bounding what adhesion supplies.
 
 Kernels: the combination jkr+mindlin for one sphere on a plane (SPIN, planes) serves
-every wall test and verify's impacts; the sphere-sphere test adds its PAIRS kernel and
-the DMT test the dmt+mindlin one.
+every wall test and verify's impacts; the sphere-sphere test adds its PAIRS kernel, the
+DMT test the dmt+mindlin one and the sjkr tests (and their verify) sjkr+tsuji+mindlin.
 
 Analytic JKR (Johnson 1985, section 5.5; gamma the work of adhesion, E* = 1/((1-nu1^2)/E1
 + (1-nu2^2)/E2)):
@@ -68,7 +69,7 @@ density = {density!r}
 
 [contact]
 {contact}
-surface_energy = {gamma!r}
+{adhesion}
 friction = 0.3
 
 {walls}
@@ -76,7 +77,7 @@ friction = 0.3
 [run]
 stop = "time"
 end_time = {end_time!r}
-gravity = [0.0, 0.0, 0.0]
+gravity = [0.0, 0.0, {gravity!r}]
 {run}
 [output]
 trace = true
@@ -93,9 +94,10 @@ def particle(z, vz):
             'material = "m"\n')
 
 
-def run(tmp_path, contact, walls, particles, end_time, run_keys=""):
+def run(tmp_path, contact, walls, particles, end_time, run_keys="", adhesion=f"surface_energy = {GAMMA!r}",
+        gravity=0.0):
     path = tmp_path / f"scene{len(list(tmp_path.iterdir()))}.toml"
-    path.write_text(SCENE.format(young=YOUNG, poisson=POISSON, density=DENSITY, contact=contact, gamma=GAMMA,
+    path.write_text(SCENE.format(young=YOUNG, poisson=POISSON, density=DENSITY, contact=contact, adhesion=adhesion, gravity=gravity,
                                  walls=walls, particles="\n".join(particles), end_time=end_time, run=run_keys))
     return simulation.Simulation(scenario.load_scene(path, [])).run()
 
@@ -221,6 +223,62 @@ def test_dmt_pull_off_force_is_two_pi_gamma_r(tmp_path):
     speed, result = wall_impact(tmp_path, 2.0, contact='normal = "dmt"\ntangential = "mindlin"')
     assert -result.trace[:, 2].min() == pytest.approx(2.0 * math.pi * GAMMA * RADIUS, rel=0.01)
     assert result.velocity[0, 2] / speed == pytest.approx(1.0, abs=1e-3)
+
+
+SJKR_DENSITY = 1e5  # J/m^3, cohesion energy density k: the well is ~100 times m g d0 deep
+SJKR = 'normal = "sjkr"\ndamping = "tsuji"\ntangential = "mindlin"'
+
+
+def sjkr_constants(restitution):
+    """The sjkr closed form on the wall (R* = R): Fn = K d^1.5 - c d, K = 4/3 E* sqrt(R*),
+    c = k 2 pi R* (LIGGGHTS' F = k A with the overlap area A = pi a^2, a^2 = 2 R* d)."""
+    return (4.0 / 3.0 * E_STAR * math.sqrt(RADIUS), SJKR_DENSITY * 2.0 * math.pi * RADIUS,
+            f"cohesion_energy_density = {SJKR_DENSITY!r}\nrestitution = {restitution!r}")
+
+
+def test_sjkr_force_is_hertz_less_the_cohesion_over_the_overlap_area(tmp_path):
+    hertz, cohesion, adhesion = sjkr_constants(1.0)  # restitution 1: the tsuji dashpot is off
+    # the largest tension, at d* = (2c/3K)^2 where dFn/dd = 0, is the pull-off 4 c^3/(27 K^2);
+    # the well (down to Fn = 0 at d0 = (c/K)^2) is c d0^2 / 10 deep: hit at twice its speed
+    pull_off = 4.0 * cohesion**3 / (27.0 * hertz**2)
+    well = cohesion * (cohesion / hertz) ** 4 / 10.0
+    speed = 2.0 * math.sqrt(2.0 * well / MASS)
+    gap = 1e-6
+    result = run(tmp_path, SJKR, PLANE, [particle(RADIUS + gap, -speed)], gap / speed + 0.03, adhesion=adhesion)
+    overlap, force = result.trace[:, 1], result.trace[:, 2]
+    touching = overlap > 0.0
+    assert touching.sum() > 1000 and not touching[-1]
+    expected = hertz * overlap[touching] ** 1.5 - cohesion * overlap[touching]
+    assert force[touching] == pytest.approx(expected, rel=1e-12, abs=1e-12 * pull_off)
+    assert np.all(force[~touching] == 0.0)  # acting only while overlapping: no reach
+    assert -force.min() == pytest.approx(pull_off, rel=1e-3)  # the trace samples d* to ~1e-2 d*
+    # conservative (formed and broken at touch, no dashpot): an elastic rebound
+    assert result.velocity[0, 2] / speed == pytest.approx(1.0, abs=1e-3)
+
+
+def test_sjkr_sphere_rests_at_the_equilibrium_of_weight_hertz_and_cohesion(tmp_path):
+    # a sphere let go just above the wall under gravity: Fn(d) = K d^1.5 - c d carries the
+    # weight at rest, K u^3 - c u^2 = m g with u = sqrt(d) (one positive root: one sign
+    # change); the tsuji dashpot (e = 0.3) damps the oscillation about it, ~7 ms period,
+    # by 1/e every ~5 ms, so 0.25 s leaves far below 1e-9 of the initial ~1e-5 m amplitude
+    hertz, cohesion, adhesion = sjkr_constants(0.3)
+    g = 9.81
+    low, high = 0.0, 1.0
+    for _ in range(200):  # bisection on the monotone K u^3 - c u^2 - m g for u > 2c/(3K)
+        root = 0.5 * (low + high)
+        low, high = (root, high) if hertz * root**3 - cohesion * root**2 < MASS * g else (low, root)
+    equilibrium = root**2
+    assert equilibrium > (cohesion / hertz) ** 2  # deeper than the weightless d0: cohesion matters
+    result = run(tmp_path, SJKR, PLANE, [particle(RADIUS + 1e-6, 0.0)], 0.25, adhesion=adhesion, gravity=-g)
+    assert RADIUS - result.position[0, 2] == pytest.approx(equilibrium, rel=1e-6)
+    assert result.trace[-1, 2] == pytest.approx(MASS * g, rel=1e-6)
+
+
+def test_verify_runs_the_adhesive_checks_on_sjkr():
+    battery = verify.Battery("sjkr+tsuji+mindlin", [f"contact.cohesion_energy_density={SJKR_DENSITY!r}"])
+    checks = {c.name: c for c in battery.adhesion()}
+    assert checks["adhesion: pull-off force"].passed, checks["adhesion: pull-off force"].value
+    assert checks["adhesion: energy bounded by the adhesion work"].passed
 
 
 @pytest.fixture(scope="module")

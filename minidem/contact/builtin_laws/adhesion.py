@@ -1,4 +1,4 @@
-"""Adhesive normal parts: JKR and DMT.
+"""Adhesive normal parts: JKR, DMT and the simplified JKR of LIGGGHTS (sjkr).
 
 Notation: d the normal overlap (negative while the surfaces are apart), R* the effective
 radius, E* the effective modulus, gamma the work of adhesion per unit area (J/m^2; the
@@ -19,13 +19,22 @@ radius, E* the effective modulus, gamma the work of adhesion per unit area (J/m^
 * DMT (Derjaguin, Muller & Toporov 1975; as LAMMPS' granular dmt):
       Fn = 4/3 E* sqrt(R*) d^1.5 - 2 pi gamma R*   while d > 0,
   formed and broken at touch; pull-off force 2 pi gamma R*.
+* sjkr (LIGGGHTS' ``cohesion sjkr``, simplified JKR): Hertz plus a cohesive force k A
+  while overlapping, k the cohesion energy density (J/m^3) and A the area of the overlap
+  lens of the undeformed surfaces, A = pi a_g^2 with a_g^2 = 2 R* d to first order in d/R:
+      Fn = 4/3 E* sqrt(R*) d^1.5 - 2 pi k R* d   while d > 0.
+  LIGGGHTS evaluates the lens from the two radii (sphere-wall pi (2 R d - d^2)); the parts
+  see R* and d only, so minidem keeps the leading term, the same for every pair of radii
+  (relative difference d / 2R for a wall). With K = 4/3 E* sqrt(R*) and c = 2 pi k R*:
+  the largest tension, at d* = (2c / 3K)^2, is 4 c^3 / (27 K^2); the attraction wins up to
+  d0 = (c / K)^2, and the well is c d0^2 / 10 deep.
 """
 
 import math
 
 import numba
 
-from minidem.contact.builtin_laws.parts import HERTZ
+from minidem.contact.builtin_laws.parts import HERTZ, hertz_normal
 from minidem.contact.laws import ContactPart, HistorySlot, Parameter
 
 SURFACE_ENERGY = Parameter(
@@ -141,10 +150,9 @@ JKR = ContactPart(
 def dmt_normal(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment, history):
     """Fn = 4/3 E* sqrt(R*) d^1.5 - 2 pi gamma R* while d > 0 (no reach: formed and broken
     at touch); the Hertz tangent stiffness and contact radius."""
-    stiffness = constants[0] * math.sqrt(effective_radius)
-    root = math.sqrt(normal_overlap)
-    return (stiffness * normal_overlap * root - 2.0 * math.pi * constants[1] * effective_radius, 1.5 * stiffness * root,
-            math.sqrt(effective_radius * normal_overlap))
+    force, stiffness, contact_radius = hertz_normal(constants, effective_radius, effective_mass, normal_overlap,
+                                                    normal_overlap_increment, history)
+    return force - 2.0 * math.pi * constants[1] * effective_radius, stiffness, contact_radius
 
 
 def _dmt_supply_bound(pair, constants, effective_radius):
@@ -173,4 +181,60 @@ DMT = ContactPart(
     reference=DMT_REFERENCE,
 )
 
-PARTS = [JKR, DMT]
+COHESION_ENERGY_DENSITY = Parameter(
+    "cohesion_energy_density", None, "J/m^3", "k of the simplified JKR: cohesive force k A over the overlap "
+    "area A (LIGGGHTS' cohesionEnergyDensity); per material pair through [contact.pairs]", low=0.0, required=True)
+LIGGGHTS = ("LIGGGHTS-PUBLIC 3.8, gran cohesion sjkr (DCS Computing / CFDEM); Kloss et al. (2012), "
+            "Prog. Comput. Fluid Dyn. 12, 140-152")
+
+
+@numba.njit(cache=True, inline="always")
+def sjkr_normal(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment, history):
+    """Fn = 4/3 E* sqrt(R*) d^1.5 - k 2 pi R* d while d > 0 (module docstring); passes on
+    Hertz's tangent stiffness and contact radius (the dashpot and Mindlin act as with
+    hertz, as LIGGGHTS adds the cohesion after its normal model's damping)."""
+    force, stiffness, contact_radius = hertz_normal(constants, effective_radius, effective_mass, normal_overlap,
+                                                    normal_overlap_increment, history)
+    return force - 2.0 * math.pi * constants[1] * effective_radius * normal_overlap, stiffness, contact_radius
+
+
+def _sjkr_attraction(constants, effective_radius):
+    """(K, c): Fn = K d^1.5 - c d."""
+    return (constants["hertz_modulus"] * math.sqrt(effective_radius),
+            2.0 * math.pi * constants["cohesion_energy_density"] * effective_radius)
+
+
+def _sjkr_supply_bound(pair, constants, effective_radius):
+    """The cohesion c d does at most c d0^2 / 2 of work from touch to d0 = (c/K)^2, where
+    the Hertz force takes over (the well itself is c d0^2 / 10 deep)."""
+    hertz, cohesion = _sjkr_attraction(constants, effective_radius)
+    return 0.5 * cohesion * (cohesion / hertz) ** 4
+
+
+def _sjkr_pull_off(pair, constants, effective_radius):
+    """The largest tension, at d* = (2c / 3K)^2: 4 c^3 / (27 K^2)."""
+    hertz, cohesion = _sjkr_attraction(constants, effective_radius)
+    return 4.0 * cohesion**3 / (27.0 * hertz**2)
+
+
+SJKR = ContactPart(
+    name="sjkr",
+    kind="normal",
+    description="simplified JKR (LIGGGHTS cohesion sjkr): Hertz - k A while overlapping, A = 2 pi R* d the "
+                "overlap area: Fn = 4/3 E* sqrt(R*) d^1.5 - 2 pi k R* d",
+    parameters=(COHESION_ENERGY_DENSITY,),
+    constants=("hertz_modulus", "cohesion_energy_density"),
+    history=(),
+    prepare=lambda pair, params, prepared: {"hertz_modulus": 4.0 / 3.0 * pair.effective_modulus,
+                                            "cohesion_energy_density": params["cohesion_energy_density"]},
+    function=sjkr_normal,
+    energy=("store", "supply"),
+    provides=("hertzian", "adhesive"),
+    contact_time=HERTZ.contact_time,  # Hertz's duration (eq 13): the time step's scale
+    stiffness=HERTZ.stiffness,
+    supply_bound=_sjkr_supply_bound,
+    pull_off=_sjkr_pull_off,
+    reference=LIGGGHTS,
+)
+
+PARTS = [JKR, DMT, SJKR]
