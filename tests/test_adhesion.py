@@ -70,14 +70,14 @@ density = {density!r}
 [contact]
 {contact}
 {adhesion}
-friction = 0.3
+friction = {friction!r}
 
 {walls}
 {particles}
 [run]
 stop = "time"
 end_time = {end_time!r}
-gravity = [0.0, 0.0, {gravity!r}]
+gravity = {gravity!r}
 {run}
 [output]
 trace = true
@@ -95,9 +95,10 @@ def particle(z, vz):
 
 
 def run(tmp_path, contact, walls, particles, end_time, run_keys="", adhesion=f"surface_energy = {GAMMA!r}",
-        gravity=0.0):
+        gravity=(0.0, 0.0, 0.0), friction=0.3):
     path = tmp_path / f"scene{len(list(tmp_path.iterdir()))}.toml"
-    path.write_text(SCENE.format(young=YOUNG, poisson=POISSON, density=DENSITY, contact=contact, adhesion=adhesion, gravity=gravity,
+    path.write_text(SCENE.format(young=YOUNG, poisson=POISSON, density=DENSITY, contact=contact, adhesion=adhesion, gravity=[float(g) for g in gravity],
+                                 friction=friction,
                                  walls=walls, particles="\n".join(particles), end_time=end_time, run=run_keys))
     return simulation.Simulation(scenario.load_scene(path, [])).run()
 
@@ -269,7 +270,7 @@ def test_sjkr_sphere_rests_at_the_equilibrium_of_weight_hertz_and_cohesion(tmp_p
         low, high = (root, high) if hertz * root**3 - cohesion * root**2 < MASS * g else (low, root)
     equilibrium = root**2
     assert equilibrium > (cohesion / hertz) ** 2  # deeper than the weightless d0: cohesion matters
-    result = run(tmp_path, SJKR, PLANE, [particle(RADIUS + 1e-6, 0.0)], 0.25, adhesion=adhesion, gravity=-g)
+    result = run(tmp_path, SJKR, PLANE, [particle(RADIUS + 1e-6, 0.0)], 0.25, adhesion=adhesion, gravity=(0.0, 0.0, -g))
     assert RADIUS - result.position[0, 2] == pytest.approx(equilibrium, rel=1e-6)
     assert result.trace[-1, 2] == pytest.approx(MASS * g, rel=1e-6)
 
@@ -279,6 +280,42 @@ def test_verify_runs_the_adhesive_checks_on_sjkr():
     checks = {c.name: c for c in battery.adhesion()}
     assert checks["adhesion: pull-off force"].passed, checks["adhesion: pull-off force"].value
     assert checks["adhesion: energy bounded by the adhesion work"].passed
+
+
+def test_jkr_friction_limit_is_thornton_yin_mu_times_load_plus_twice_the_pull_off(tmp_path):
+    # Thornton & Yin (1991): an adhesive contact slides at |Ft| = mu (P + 2 Fc), P the JKR
+    # force, Fc = 3/2 pi gamma R* (the total force P alone would give none at zero load).
+    # A sphere let go at touch on a wall tilted 60 deg (gravity tilted instead), mu = 0.05:
+    # tan 60 > 3.5 mu (1 + 2 Fc / (m g cos 60)) (= 0.98: rolling would need more friction
+    # than the limit), so it slides; once the snap-in oscillation is damped (e = 0.1, a few
+    # ms) P = m g cos 60 and the centre accelerates down the slope at g sin 60 - mu (g cos 60
+    # + 2 Fc / m) = 7.13 m/s^2 (8.25 with the total normal force as the load)
+    friction, g, theta = 0.05, 9.81, math.radians(60.0)
+    gravity = (g * math.sin(theta), 0.0, -g * math.cos(theta))
+    pull_off = WALL["pull_off"]
+    result = run(tmp_path, 'normal = "jkr"\ndamping = "tsuji"\ntangential = "mindlin"', PLANE,
+                 [particle(RADIUS + 1e-9, 0.0)], 0.1, adhesion=f"surface_energy = {GAMMA!r}\nrestitution = 0.1",
+                 gravity=gravity, friction=friction)
+    trace = result.trace
+    settled = trace[:, 0] > 0.05
+    load = trace[settled, 2]  # the total normal force: P once the dashpot is at rest
+    assert load == pytest.approx(MASS * g * math.cos(theta), rel=1e-6)
+    tangential = np.linalg.norm(trace[settled, 3:6], axis=1)
+    assert tangential == pytest.approx(friction * (load + 2.0 * pull_off), rel=1e-6)
+    slope = np.polyfit(trace[settled, 0], trace[settled, 9], 1)[0]
+    expected = g * math.sin(theta) - friction * (g * math.cos(theta) + 2.0 * pull_off / MASS)
+    assert slope == pytest.approx(expected, rel=1e-4)
+
+
+def test_friction_load_is_refused_on_other_kinds_and_uncompiled():
+    from minidem.contact import laws
+    from minidem.contact.builtin_laws import adhesion, parts
+
+    wrong_kind = dataclasses.replace(parts.MINDLIN, friction_load=adhesion.jkr_friction_load)
+    assert "only a normal part may declare friction_load" in laws._part_problem(wrong_kind)
+    uncompiled = dataclasses.replace(adhesion.JKR, friction_load=adhesion.jkr_friction_load.py_func)
+    assert "friction_load" in laws._part_problem(uncompiled)
+    assert laws._part_problem(adhesion.JKR) is None
 
 
 @pytest.fixture(scope="module")

@@ -181,16 +181,27 @@ def _generated_force(parts: tuple[laws.ContactPart, ...]):
                      "effective_mass, normal_overlap, normal_velocity, stiffness, elastic)")
     else:
         lines.append("    normal_force = elastic")
+    # the load of the friction limits: the total normal force, or the normal part's own
+    # (an adhesive contact's, laws.ContactPart.friction_load)
+    normal = next(p for p in parts if p.kind == "normal")
+    functions, load = [p.function for p in parts], "normal_force"
+    if normal.friction_load is not None:
+        module, attribute = laws.import_name(normal.friction_load, "friction_load")
+        imports.append(f"from {module} import {attribute} as normal_friction_load")
+        lines.append(f"    friction_load = normal_friction_load({call['normal'][0]}, effective_radius, elastic, "
+                     "normal_force)")
+        functions.append(normal.friction_load)
+        load = "friction_load"
     if "tangential" in call:
         lines.append(f"    ftx, fty, ftz = tangential_part(\n        {call['tangential'][0]}, effective_radius, "
-                     "effective_mass, normal_overlap, normal_overlap_increment, contact_radius, elastic, normal_force,\n"
+                     f"effective_mass, normal_overlap, normal_overlap_increment, contact_radius, elastic, {load},\n"
                      f"        tangential_increment, tangential_velocity, {call['tangential'][1]})")
     else:
         lines.append("    ftx, fty, ftz = 0.0, 0.0, 0.0")
     couples = "rolling" in call or "twisting" in call
-    _couple_lines(call, lines, imports)
+    _couple_lines(call, lines, imports, load)
     lines.append("    return normal_force, ftx, fty, ftz" + (", mx, my, mz" if couples else ""))
-    return _load_force([p.name for p in parts], [p.function for p in parts], imports, lines, couples)
+    return _load_force([p.name for p in parts], functions, imports, lines, couples)
 
 
 def _part_calls(parts, imports: list, constant_at: int, history_at: int) -> dict:
@@ -206,22 +217,22 @@ def _part_calls(parts, imports: list, constant_at: int, history_at: int) -> dict
     return call
 
 
-def _couple_lines(call: dict, lines: list, imports: list) -> None:
+def _couple_lines(call: dict, lines: list, imports: list, load: str = "normal_force") -> None:
     """The generated lines of the rolling and twisting parts named in ``call`` (kind ->
     (constants slice, history slice)); they read normal, stiffness, contact_radius and
-    normal_force from the lines before them."""
+    the load of their limits (the variable named ``load``) from the lines before them."""
     if "rolling" in call or "twisting" in call:
         imports.append("from minidem.contact.compose import split_spin")
         lines.append("    rolling_velocity, twisting_velocity = split_spin(relative_spin, normal)")
         lines.append("    mx, my, mz = 0.0, 0.0, 0.0")
     if "rolling" in call:
         lines.append(f"    mx, my, mz = rolling_part(\n        {call['rolling'][0]}, effective_radius, effective_mass, "
-                     "normal_overlap, contact_radius, stiffness, normal_force,\n        (rolling_velocity[0] * dt, "
+                     f"normal_overlap, contact_radius, stiffness, {load},\n        (rolling_velocity[0] * dt, "
                      "rolling_velocity[1] * dt, rolling_velocity[2] * dt), rolling_velocity, "
                      f"{call['rolling'][1]})")
     if "twisting" in call:
         lines.append(f"    twist = twisting_part(\n        {call['twisting'][0]}, effective_radius, effective_mass, "
-                     "normal_overlap, contact_radius, stiffness, normal_force, twisting_velocity * dt,\n"
+                     f"normal_overlap, contact_radius, stiffness, {load}, twisting_velocity * dt,\n"
                      f"        twisting_velocity, {call['twisting'][1]})")
         lines.append("    mx, my, mz = mx + twist * normal[0], my + twist * normal[1], mz + twist * normal[2]")
 

@@ -97,6 +97,15 @@ def jkr_normal(constants, effective_radius, effective_mass, normal_overlap, norm
     return force, 2.0 * effective_modulus * a, a
 
 
+@numba.njit(cache=True, inline="always")
+def jkr_friction_load(constants, effective_radius, elastic_normal_force, normal_force):
+    """Thornton & Yin (1991): an adhesive JKR contact slides when |Ft| = mu (P + 2 Fc), P
+    the JKR force, Fc = 3/2 pi gamma R* (as LAMMPS' granular jkr, on the elastic force):
+    positive down to the end of the curve (P >= -Fc), so the contact has friction at
+    zero and at tensile load, where the total normal force would give none."""
+    return elastic_normal_force + 3.0 * math.pi * constants[1] * effective_radius
+
+
 def _jkr_reach(pair, constants, effective_radius):
     return jkr_critical_separation(constants["effective_modulus"], constants["surface_energy"], effective_radius)
 
@@ -135,14 +144,16 @@ JKR = ContactPart(
     function=jkr_normal,
     energy=("store", "dissipate", "supply"),
     # Hertzian at the contact radius (Hertz's curve when gamma = 0): the Hertz dashpot
-    # and Mindlin's stiffness apply at the JKR contact radius, as in LAMMPS' granular jkr
+    # reads kn = 2 E* a at the JKR contact radius, as in LAMMPS' granular jkr; mindlin
+    # computes its own stiffness 8 G* sqrt(R* d) from the overlap (none in tension)
     provides=("hertzian", "adhesive"),
     reach=_jkr_reach,
     contact_time=HERTZ.contact_time,  # Hertz's duration (eq 13): the time step's scale
     stiffness=_jkr_stiffness,
     supply_bound=_jkr_supply_bound,
     pull_off=lambda pair, c, radius: 1.5 * math.pi * c["surface_energy"] * radius,
-    reference=JKR_REFERENCE,
+    friction_load=jkr_friction_load,
+    reference=JKR_REFERENCE + "; Thornton & Yin (1991), J. Phys. D 24, 1942-1946 (friction limit)",
 )
 
 
