@@ -173,24 +173,34 @@ def _dmt_supply_bound(pair, constants, effective_radius):
     return pull * (pull / (constants["hertz_modulus"] * math.sqrt(effective_radius))) ** (2.0 / 3.0)
 
 
-DMT = ContactPart(
-    name="dmt",
-    kind="normal",
-    description="DMT adhesion: Fn = 4/3 E* sqrt(R*) d^1.5 - 2 pi gamma R* while touching; pull-off 2 pi gamma R*",
-    parameters=(SURFACE_ENERGY,),
-    constants=("hertz_modulus", "surface_energy"),
-    history=(),
-    prepare=lambda pair, params, prepared: {"hertz_modulus": 4.0 / 3.0 * pair.effective_modulus,
-                                            "surface_energy": params["surface_energy"]},
-    function=dmt_normal,
-    energy=("store", "supply"),
-    provides=("hertzian", "adhesive"),
-    contact_time=HERTZ.contact_time,  # Hertz's duration (eq 13): the time step's scale
-    stiffness=lambda pair, c, radius, mass, overlap: 2.0 * pair.effective_modulus * math.sqrt(radius * overlap),
-    supply_bound=_dmt_supply_bound,
-    pull_off=lambda pair, c, radius: 2.0 * math.pi * c["surface_energy"] * radius,
-    reference=DMT_REFERENCE,
-)
+def _hertz_less_attraction(name, description, parameter, function, supply_bound, pull_off, reference):
+    """A normal part on Hertz's curve less an attraction while the surfaces overlap (dmt,
+    sjkr): constants 4/3 E* and the attraction's parameter, Hertz's contact time and
+    stiffness (passed on to the dashpot and the time step); no reach."""
+    return ContactPart(
+        name=name,
+        kind="normal",
+        description=description,
+        parameters=(parameter,),
+        constants=("hertz_modulus", parameter.name),
+        history=(),
+        prepare=lambda pair, params, prepared: {"hertz_modulus": 4.0 / 3.0 * pair.effective_modulus,
+                                                parameter.name: params[parameter.name]},
+        function=function,
+        energy=("store", "supply"),
+        provides=("hertzian", "adhesive"),
+        contact_time=HERTZ.contact_time,  # Hertz's duration (eq 13): the time step's scale
+        stiffness=HERTZ.stiffness,
+        supply_bound=supply_bound,
+        pull_off=pull_off,
+        reference=reference,
+    )
+
+
+DMT = _hertz_less_attraction(
+    "dmt", "DMT adhesion: Fn = 4/3 E* sqrt(R*) d^1.5 - 2 pi gamma R* while touching; pull-off 2 pi gamma R*",
+    SURFACE_ENERGY, dmt_normal, _dmt_supply_bound,
+    lambda pair, c, radius: 2.0 * math.pi * c["surface_energy"] * radius, DMT_REFERENCE)
 
 COHESION_ENERGY_DENSITY = Parameter(
     "cohesion_energy_density", None, "J/m^3", "k of the simplified JKR: cohesive force k A over the overlap "
@@ -228,24 +238,9 @@ def _sjkr_pull_off(pair, constants, effective_radius):
     return 4.0 * cohesion**3 / (27.0 * hertz**2)
 
 
-SJKR = ContactPart(
-    name="sjkr",
-    kind="normal",
-    description="simplified JKR (LIGGGHTS cohesion sjkr): Hertz - k A while overlapping, A = 2 pi R* d the "
-                "overlap area: Fn = 4/3 E* sqrt(R*) d^1.5 - 2 pi k R* d",
-    parameters=(COHESION_ENERGY_DENSITY,),
-    constants=("hertz_modulus", "cohesion_energy_density"),
-    history=(),
-    prepare=lambda pair, params, prepared: {"hertz_modulus": 4.0 / 3.0 * pair.effective_modulus,
-                                            "cohesion_energy_density": params["cohesion_energy_density"]},
-    function=sjkr_normal,
-    energy=("store", "supply"),
-    provides=("hertzian", "adhesive"),
-    contact_time=HERTZ.contact_time,  # Hertz's duration (eq 13): the time step's scale
-    stiffness=HERTZ.stiffness,
-    supply_bound=_sjkr_supply_bound,
-    pull_off=_sjkr_pull_off,
-    reference=LIGGGHTS,
-)
+SJKR = _hertz_less_attraction(
+    "sjkr", "simplified JKR (LIGGGHTS cohesion sjkr): Hertz - k A while overlapping, A = 2 pi R* d the overlap "
+    "area: Fn = 4/3 E* sqrt(R*) d^1.5 - 2 pi k R* d", COHESION_ENERGY_DENSITY, sjkr_normal, _sjkr_supply_bound,
+    _sjkr_pull_off, LIGGGHTS)
 
 PARTS = [JKR, DMT, SJKR]
