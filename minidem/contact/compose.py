@@ -30,7 +30,7 @@ import numba
 
 from minidem.contact import laws
 
-_GENERATOR_VERSION = "1"  # bump when the generated source below changes shape
+_GENERATOR_VERSION = "2"  # bump when the generated source below changes shape
 
 
 def check_combination(parts: tuple[laws.ContactPart, ...]) -> None:
@@ -159,12 +159,22 @@ def _generated_force(parts: tuple[laws.ContactPart, ...]):
     """Write (once) and import the module holding the combination's force function."""
     lines, imports = [], []
     call = _part_calls(parts, imports, 0, 0)
+    by_kind = {p.kind: p for p in parts}
     lines.append("    elastic, stiffness, contact_radius = normal_part(\n"
                  f"        {call['normal'][0]}, effective_radius, effective_mass, normal_overlap, "
                  f"normal_overlap_increment, {call['normal'][1]})")
     if "damping" in call:
-        lines.append(f"    normal_force = elastic + damping_part({call['damping'][0]}, effective_radius, "
-                     "effective_mass, normal_overlap, normal_velocity, stiffness, elastic)")
+        dashpot = (f"damping_part({call['damping'][0]}, effective_radius, effective_mass, normal_overlap, "
+                   "normal_velocity, stiffness, elastic)")
+        if "supply" in by_kind["normal"].energy:
+            # an adhesive normal part (energy role 'supply', as verify tells adhesion)
+            # pulls: its tension, and the dashpot's, is kept
+            lines.append(f"    normal_force = elastic + {dashpot}")
+        else:
+            # a non-adhesive contact never pulls: the same rule as the paper's laws
+            # (common.damped_normal_force), for which the damping parts map e
+            imports.append("from minidem.contact.builtin_laws.common import damped_normal_force")
+            lines.append(f"    normal_force = damped_normal_force(elastic, {dashpot})")
     else:
         lines.append("    normal_force = elastic")
     if "tangential" in call:
