@@ -65,7 +65,7 @@ def damped_normal_force(elastic, dashpot):
 def linear_dashpot_restitution(damping_ratio):
     """Restitution of the clipped linear spring-dashpot m x'' = -kn x - c x', force
     max(kn x + c x', 0), c = 2 zeta sqrt(m kn) (Schwager & Poeschel 2007, Phys. Rev. E
-    75, 051304, eqs 20-22; derived again here).
+    75, 051304; derived again here).
 
     With omega0 = 1: x = e^(-zeta t) sin(w t)/w, w = sqrt(1 - zeta^2). The force
     x + 2 zeta x' vanishes in restitution at w t = pi - atan2(2 zeta w, 1 - 2 zeta^2),
@@ -88,30 +88,36 @@ def linear_dashpot_restitution(damping_ratio):
     return math.exp(-damping_ratio * duration)
 
 
+def _damping_for(restitution: float, restitution_of, cache: dict) -> float:
+    """The damping (>= 0) whose restitution_of(damping) is e: bisection, restitution_of
+    falling monotonically from 1 at zero damping to 0 at infinite damping. The upper
+    bound doubles from 1 until it gives less than e; 60 halvings then leave the damping
+    to round-off. Memoised in ``cache`` (per mapping)."""
+    if restitution >= 1.0:
+        return 0.0
+    if restitution not in cache:
+        low, high = 0.0, 1.0
+        while restitution_of(high) > restitution:
+            low, high = high, 2.0 * high
+        for _ in range(60):
+            mid = 0.5 * (low + high)
+            if restitution_of(mid) > restitution:
+                low = mid
+            else:
+                high = mid
+        cache[restitution] = 0.5 * (low + high)
+    return cache[restitution]
+
+
 _ZETA_CACHE: dict[float, float] = {}
 
 
 def linear_damping_ratio(restitution: float) -> float:
     """Damping ratio zeta of the clipped linear spring-dashpot that gives restitution e:
-    linear_dashpot_restitution inverted by bisection in ln(zeta) (e(zeta) is monotonic;
-    60 halvings leave zeta to round-off). No longer -ln e / sqrt(pi^2 + ln^2 e), which is
-    the unclipped dashpot's (the contact ending at zero overlap, the force tensile at
-    the end): clipped at zero, the same zeta gives a larger e."""
-    if restitution >= 1.0:
-        return 0.0
-    if restitution in _ZETA_CACHE:
-        return _ZETA_CACHE[restitution]
-    low, high = 0.0, 1.0
-    while linear_dashpot_restitution(high) > restitution:
-        low, high = high, 2.0 * high
-    for _ in range(80):
-        mid = 0.5 * (low + high)
-        if linear_dashpot_restitution(mid) > restitution:
-            low = mid
-        else:
-            high = mid
-    _ZETA_CACHE[restitution] = 0.5 * (low + high)
-    return _ZETA_CACHE[restitution]
+    linear_dashpot_restitution inverted by bisection. No longer -ln e / sqrt(pi^2 + ln^2 e),
+    which is the unclipped dashpot's (the contact ending at zero overlap, the force tensile
+    at the end): clipped at zero, the same zeta gives a larger e."""
+    return _damping_for(restitution, linear_dashpot_restitution, _ZETA_CACHE)
 
 
 @numba.njit(cache=True)
@@ -152,26 +158,10 @@ _ALPHA_CACHE: dict[float, float] = {}
 
 def hertz_damping_factor(restitution: float) -> float:
     """alpha such that the clipped Hertz dashpot alpha sqrt(m* K) d^0.25 d' gives
-    restitution e.
-
-    Found by bisection on the dimensionless solution above (e(alpha) is monotonic);
-    the restitution reproduced is e within 1e-6, checked in the tests by a full run.
-    """
-    if restitution >= 1.0:
-        return 0.0
-    if restitution in _ALPHA_CACHE:
-        return _ALPHA_CACHE[restitution]
-    low, high = 0.0, 1.0
-    while _hertz_dashpot_restitution(high) > restitution:
-        low, high = high, 2.0 * high
-    for _ in range(60):
-        mid = 0.5 * (low + high)
-        if _hertz_dashpot_restitution(mid) > restitution:
-            low = mid
-        else:
-            high = mid
-    _ALPHA_CACHE[restitution] = 0.5 * (low + high)
-    return _ALPHA_CACHE[restitution]
+    restitution e: the dimensionless solution above inverted by bisection; the
+    restitution reproduced is e within 1e-6, checked in the tests by an independent
+    integration and by full runs."""
+    return _damping_for(restitution, _hertz_dashpot_restitution, _ALPHA_CACHE)
 
 
 @numba.njit(cache=True, inline="always")
