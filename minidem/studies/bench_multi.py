@@ -236,9 +236,9 @@ def memory_growth(cases) -> str:
 
 
 def per_particle_memory(cases, fixed_mib) -> str:
-    """Bytes a particle at each N: (peak - fixed cost) / N, minidem one thread (fixed cost:
-    the fresh interpreter's after numba's first compiled call) beside LIGGGHTS (its
-    fixed cost: its peak at the smallest N less that N's share at the next size's rate)."""
+    """Bytes a particle at each N (issue 15, target 3): (peak - fixed cost) / N, minidem
+    one thread, the fixed cost being a fresh interpreter's peak after numba's first
+    compiled call. LIGGGHTS' per-particle cost is the growth of its peak (memory_growth)."""
     parts = []
     for (variant, n), case in sorted(cases.items(), key=lambda item: (item[0][0], item[0][1])):
         mine = (_median(case["minidem_1"], "peak_rss_mib") - fixed_mib) * 1024 * 1024 / n
