@@ -246,7 +246,7 @@ def test_broken_parts_are_isolated_and_named(plugin):
     assert all(b.plugin == "parts_plugin" for b in plugin.broken)
     # the plugin's good part combines with built-in ones
     assert plugin.entry("plugin_spring+viscous+linear_history").law.frictional
-    assert [p.name for p in plugin.parts("normal")] == ["dmt", "hertz", "hooke", "jkr", "plugin_spring"]
+    assert [p.name for p in plugin.parts("normal")] == ["dmt", "hertz", "hooke", "jkr", "plugin_spring", "sjkr"]
 
 
 def test_preset_is_a_named_combination_with_its_defaults(plugin):

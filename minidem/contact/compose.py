@@ -67,20 +67,11 @@ def compose(parts: tuple[laws.ContactPart, ...], origins, defaults: Mapping[str,
     """The ContactLaw of a checked combination (see the module docstring). ``defaults``
     replace the parts' parameter defaults (a preset's values)."""
     name = preset or "+".join(p.name for p in parts)
-    parameters, seen = [], set()
-    for part in parts:
-        for parameter in part.parameters:
-            if parameter.name in seen:
-                continue
-            seen.add(parameter.name)
-            if parameter.name in defaults:
-                parameter = dataclasses.replace(parameter, default=float(defaults[parameter.name]), required=False)
-            parameters.append(parameter)
-    unknown = sorted(set(defaults) - seen)
+    parameters = [dataclasses.replace(p, default=float(defaults[p.name]), required=False) if p.name in defaults else p
+                  for p in _merged_parameters(parts)]
+    unknown = sorted(set(defaults) - {p.name for p in parameters})
     if unknown:
         raise laws.LawError(f"preset '{name}': parameters {unknown} belong to none of its parts")
-    constants = tuple(f"{p.kind}.{c}" for p in parts for c in p.constants)
-    history = tuple(dataclasses.replace(slot, name=f"{p.kind}.{slot.name}") for p in parts for slot in p.history)
     by_kind = {p.kind: p for p in parts}
     normal, damping, tangential = by_kind["normal"], by_kind.get("damping"), by_kind.get("tangential")
 
@@ -118,25 +109,48 @@ def compose(parts: tuple[laws.ContactPart, ...], origins, defaults: Mapping[str,
         def supply_bound(pair, named, effective_radius):
             return sum(float(p.supply_bound(pair, own(named, p), effective_radius)) for p in supplying)
 
-    force = _generated_force(parts)
-    couples = "rolling" in by_kind or "twisting" in by_kind
-    return laws.ContactLaw(
+    return _combined_law(
+        None, parts,
         name=name,
         description=" + ".join(f"{p.kind} {p.name}" for p in parts),
         parameters=tuple(parameters),
-        constants=constants,
-        history=history,
         prepare=prepare,
-        force=force,
+        force=_generated_force(parts),
         contact_time=contact_time,
         frictional=tangential is not None,
-        reference="; ".join(dict.fromkeys(p.reference for p in parts if p.reference)),
         stiffness=stiffness,
-        couples=couples,
-        parts=tuple(parts),
+        couples="rolling" in by_kind or "twisting" in by_kind,
         reach=reach,
         supply_bound=supply_bound,
     )
+
+
+def _merged_parameters(parts, first: tuple[laws.Parameter, ...] = (), first_owner: str = "") -> list[laws.Parameter]:
+    """``first`` (a law's parameters), then each part's, each name once; a name declared
+    with different meanings by two of them is refused (LawError naming both)."""
+    merged, owners = list(first), {p.name: (p, first_owner) for p in first}
+    for part in parts:
+        for parameter in part.parameters:
+            other = owners.get(parameter.name)
+            if other is None:
+                owners[parameter.name] = (parameter, part.name)
+                merged.append(parameter)
+            elif other[0] != parameter:
+                raise laws.LawError(f"parameter '{parameter.name}' is declared by both '{other[1]}' and "
+                                    f"'{part.name}' with different meanings")
+    return merged
+
+
+def _combined_law(law: laws.ContactLaw | None, parts: tuple[laws.ContactPart, ...], **fields) -> laws.ContactLaw:
+    """The ContactLaw of ``parts`` after ``law`` (the law they extend, or None): the law's
+    constants and history slots, then each part's named ``kind.name``; the references of
+    both, each once; the other fields as given."""
+    constants = (law.constants if law else ()) + tuple(f"{p.kind}.{c}" for p in parts for c in p.constants)
+    history = (law.history if law else ()) + tuple(
+        dataclasses.replace(slot, name=f"{p.kind}.{slot.name}") for p in parts for slot in p.history)
+    references = ([law.reference] if law else []) + [p.reference for p in parts]
+    return laws.ContactLaw(constants=constants, history=history, parts=tuple(parts),
+                           reference="; ".join(dict.fromkeys(r for r in references if r)), **fields)
 
 
 def _prepare_parts(parts, pair, params, prepared: dict, out: dict) -> None:
@@ -167,16 +181,27 @@ def _generated_force(parts: tuple[laws.ContactPart, ...]):
                      "effective_mass, normal_overlap, normal_velocity, stiffness, elastic)")
     else:
         lines.append("    normal_force = elastic")
+    # the load of the friction limits: the total normal force, or the normal part's own
+    # (an adhesive contact's, laws.ContactPart.friction_load)
+    normal = next(p for p in parts if p.kind == "normal")
+    functions, load = [p.function for p in parts], "normal_force"
+    if normal.friction_load is not None:
+        module, attribute = laws.import_name(normal.friction_load, "friction_load")
+        imports.append(f"from {module} import {attribute} as normal_friction_load")
+        lines.append(f"    friction_load = normal_friction_load({call['normal'][0]}, effective_radius, elastic, "
+                     "normal_force)")
+        functions.append(normal.friction_load)
+        load = "friction_load"
     if "tangential" in call:
         lines.append(f"    ftx, fty, ftz = tangential_part(\n        {call['tangential'][0]}, effective_radius, "
-                     "effective_mass, normal_overlap, normal_overlap_increment, contact_radius, elastic, normal_force,\n"
+                     f"effective_mass, normal_overlap, normal_overlap_increment, contact_radius, elastic, {load},\n"
                      f"        tangential_increment, tangential_velocity, {call['tangential'][1]})")
     else:
         lines.append("    ftx, fty, ftz = 0.0, 0.0, 0.0")
     couples = "rolling" in call or "twisting" in call
-    _couple_lines(call, lines, imports)
+    _couple_lines(call, lines, imports, load)
     lines.append("    return normal_force, ftx, fty, ftz" + (", mx, my, mz" if couples else ""))
-    return _load_force([p.name for p in parts], [p.function for p in parts], imports, lines, couples)
+    return _load_force([p.name for p in parts], functions, imports, lines, couples)
 
 
 def _part_calls(parts, imports: list, constant_at: int, history_at: int) -> dict:
@@ -192,22 +217,22 @@ def _part_calls(parts, imports: list, constant_at: int, history_at: int) -> dict
     return call
 
 
-def _couple_lines(call: dict, lines: list, imports: list) -> None:
+def _couple_lines(call: dict, lines: list, imports: list, load: str = "normal_force") -> None:
     """The generated lines of the rolling and twisting parts named in ``call`` (kind ->
     (constants slice, history slice)); they read normal, stiffness, contact_radius and
-    normal_force from the lines before them."""
+    the load of their limits (the variable named ``load``) from the lines before them."""
     if "rolling" in call or "twisting" in call:
         imports.append("from minidem.contact.compose import split_spin")
         lines.append("    rolling_velocity, twisting_velocity = split_spin(relative_spin, normal)")
         lines.append("    mx, my, mz = 0.0, 0.0, 0.0")
     if "rolling" in call:
         lines.append(f"    mx, my, mz = rolling_part(\n        {call['rolling'][0]}, effective_radius, effective_mass, "
-                     "normal_overlap, contact_radius, stiffness, normal_force,\n        (rolling_velocity[0] * dt, "
+                     f"normal_overlap, contact_radius, stiffness, {load},\n        (rolling_velocity[0] * dt, "
                      "rolling_velocity[1] * dt, rolling_velocity[2] * dt), rolling_velocity, "
                      f"{call['rolling'][1]})")
     if "twisting" in call:
         lines.append(f"    twist = twisting_part(\n        {call['twisting'][0]}, effective_radius, effective_mass, "
-                     "normal_overlap, contact_radius, stiffness, normal_force, twisting_velocity * dt,\n"
+                     f"normal_overlap, contact_radius, stiffness, {load}, twisting_velocity * dt,\n"
                      f"        twisting_velocity, {call['twisting'][1]})")
         lines.append("    mx, my, mz = mx + twist * normal[0], my + twist * normal[1], mz + twist * normal[2]")
 
@@ -254,19 +279,7 @@ def compose_with_law(law: laws.ContactLaw, normal: laws.ContactPart,
     if leading != normal.constants or normal.history:
         raise laws.LawError(f"law '{law.name}': its normal_part '{normal.name}' must have no history and constants "
                             f"{list(normal.constants)} that are the law's first ones (the law's: {list(leading)})")
-    name = "+".join([law.name] + [p.name for p in parts])
-    parameters, seen = list(law.parameters), {p.name for p in law.parameters}
-    for part in parts:
-        for parameter in part.parameters:
-            if parameter.name not in seen:
-                seen.add(parameter.name)
-                parameters.append(parameter)
-            elif any(q.name == parameter.name and q != parameter for q in law.parameters):
-                raise laws.LawError(f"parameter '{parameter.name}' is declared by both '{law.name}' and "
-                                    f"'{part.name}' with different meanings")
-    constants = law.constants + tuple(f"{p.kind}.{c}" for p in parts for c in p.constants)
-    history = law.history + tuple(dataclasses.replace(slot, name=f"{p.kind}.{slot.name}")
-                                  for p in parts for slot in p.history)
+    parameters = _merged_parameters(parts, law.parameters, law.name)
 
     def prepare(pair, params):
         out = dict(law.prepare(pair, {p.name: params.get(p.name) for p in law.parameters}))
@@ -296,20 +309,17 @@ def compose_with_law(law: laws.ContactLaw, normal: laws.ContactPart,
     lines.append("    return normal_force, ftx, fty, ftz, mx, my, mz")
     force = _load_force([law.name, *(p.name for p in parts)], [law.force, normal.function]
                         + [p.function for p in parts], imports, lines, True)
-    return laws.ContactLaw(
-        name=name,
+    return _combined_law(
+        law, parts,
+        name="+".join([law.name] + [p.name for p in parts]),
         description=f"{law.name} ({law.description}) + " + " + ".join(f"{p.kind} {p.name}" for p in parts),
         parameters=tuple(parameters),
-        constants=constants,
-        history=history,
         prepare=prepare,
         force=force,
         contact_time=contact_time,
         frictional=law.frictional,
-        reference="; ".join(dict.fromkeys(r for r in (law.reference, *(p.reference for p in parts)) if r)),
         stiffness=stiffness,
         couples=True,
-        parts=tuple(parts),
     )
 
 

@@ -327,6 +327,10 @@ PART_ARGUMENTS = {
     "twisting": ("constants", "effective_radius", "effective_mass", "normal_overlap", "contact_radius",
                  "normal_stiffness", "normal_force", "twisting_increment", "twisting_velocity", "history"),
 }
+# a normal part's optional friction_load(...) -> N: the normal load the Coulomb-type
+# limits of the tangential, rolling and twisting parts read instead of the total normal
+# force (an adhesive contact's: Thornton & Yin 1991)
+FRICTION_LOAD_ARGUMENTS = ("constants", "effective_radius", "elastic_normal_force", "normal_force")
 # what a part may do to the energy of the contact (analysis and verify check each kind
 # against its own bound): store it and give it back (a spring), dissipate it (a dashpot,
 # sliding friction), or supply it (adhesion: at most the work of adhesion per contact)
@@ -376,6 +380,12 @@ class ContactPart:
     pull_off      adhesive normal parts, optional: ``pull_off(pair, constants,
                   effective_radius) -> N``, the largest tensile force (JKR 3/2 pi gamma R*);
                   ``minidem verify`` checks a rebound against it
+    friction_load normal parts, optional: a numba ``@njit`` function of
+                  FRICTION_LOAD_ARGUMENTS returning the load (N) that the tangential,
+                  rolling and twisting parts receive as ``normal_force`` for their
+                  Coulomb-type limits; None: the total normal force. JKR: Thornton & Yin's
+                  (1991) P + 2 Fc, so an adhesive contact has friction at zero or tensile
+                  load (as LAMMPS' granular jkr)
     contact_time  normal parts: ``contact_time(pair, constants, effective_radius,
                   effective_mass, normal_speed) -> s``, for the automatic time step
     stiffness     normal parts: ``stiffness(pair, constants, R*, m*, overlap) -> kn``;
@@ -400,6 +410,7 @@ class ContactPart:
     reference: str = ""
     supply_bound: Callable | None = None
     pull_off: Callable | None = None
+    friction_load: Any = None
 
     @property
     def history_size(self) -> int:
@@ -807,6 +818,12 @@ def _part_problem(part) -> str | None:
                 "(the energy guard and verify bound what it may give)")
     if part.kind == "normal" and part.contact_time is None:
         return "a normal part must declare contact_time (the automatic time step needs it)"
+    if part.friction_load is not None:
+        if part.kind != "normal":
+            return "only a normal part may declare friction_load (the load of the other parts' friction limits)"
+        problem = _compiled_function_problem(part.friction_load, "friction_load", FRICTION_LOAD_ARGUMENTS)
+        if problem is not None:
+            return problem
     return _compiled_function_problem(part.function, "function", PART_ARGUMENTS[part.kind])
 
 

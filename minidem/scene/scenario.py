@@ -69,7 +69,7 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
         Key("law", "str", None, "", "contact law, preset or alias (`minidem laws` lists them); required "
             "unless the law is composed of parts (`normal = ...`)"),
         Key("normal", "str", None, "", "normal part (e.g. \"hertz\", \"hooke\"; adhesive \"jkr\", \"dmt\" with "
-            "`surface_energy` in J/m^2): compose the law of parts instead of naming one; with a preset `law`, "
+            "`surface_energy` in J/m^2, \"sjkr\" with `cohesion_energy_density` in J/m^3): compose the law of parts instead of naming one; with a preset `law`, "
             "replaces the preset's part"),
         Key("damping", "str", None, "", "damping part (e.g. \"tsuji\", \"viscous\") or \"none\""),
         Key("tangential", "str", None, "", "tangential part (e.g. \"mindlin\", \"linear_history\") or \"none\""),

@@ -1,4 +1,4 @@
-"""Adhesive normal parts: JKR and DMT.
+"""Adhesive normal parts: JKR, DMT and the simplified JKR of LIGGGHTS (sjkr).
 
 Notation: d the normal overlap (negative while the surfaces are apart), R* the effective
 radius, E* the effective modulus, gamma the work of adhesion per unit area (J/m^2; the
@@ -13,17 +13,28 @@ radius, E* the effective modulus, gamma the work of adhesion per unit area (J/m^
   The hysteresis (formed at touch, broken at d_c) dissipates the work of separation
       W_s = 0.663 pi gamma a_z^2,  a_z^3 = 2 pi gamma R*^2 / E*  (a at d = 0),
   the integral of -Fn from d_c to 0; a sphere hitting a wall elastically sticks when its
-  kinetic energy is below W_s (Thornton & Ning 1998): v_c = sqrt(2 W_s / m*).
+  kinetic energy is below W_s (Thornton & Ning 1998): v_c = sqrt(2 W_s / m*); for a
+  sphere of density rho on a wall their V_s = 1.84 (gamma^5 / (rho^3 E*^2 R^5))^(1/6)
+  (docs/laws.md: why the form quoted with the pull-off force and 1.84 is not the same).
 * DMT (Derjaguin, Muller & Toporov 1975; as LAMMPS' granular dmt):
       Fn = 4/3 E* sqrt(R*) d^1.5 - 2 pi gamma R*   while d > 0,
   formed and broken at touch; pull-off force 2 pi gamma R*.
+* sjkr (LIGGGHTS' ``cohesion sjkr``, simplified JKR): Hertz plus a cohesive force k A
+  while overlapping, k the cohesion energy density (J/m^3) and A the area of the overlap
+  lens of the undeformed surfaces, A = pi a_g^2 with a_g^2 = 2 R* d to first order in d/R:
+      Fn = 4/3 E* sqrt(R*) d^1.5 - 2 pi k R* d   while d > 0.
+  LIGGGHTS evaluates the lens from the two radii (sphere-wall pi (2 R d - d^2)); the parts
+  see R* and d only, so minidem keeps the leading term, the same for every pair of radii
+  (relative difference d / 2R for a wall). With K = 4/3 E* sqrt(R*) and c = 2 pi k R*:
+  the largest tension, at d* = (2c / 3K)^2, is 4 c^3 / (27 K^2); the attraction wins up to
+  d0 = (c / K)^2, and the well is c d0^2 / 10 deep.
 """
 
 import math
 
 import numba
 
-from minidem.contact.builtin_laws.parts import HERTZ
+from minidem.contact.builtin_laws.parts import HERTZ, hertz_normal
 from minidem.contact.laws import ContactPart, HistorySlot, Parameter
 
 SURFACE_ENERGY = Parameter(
@@ -86,6 +97,15 @@ def jkr_normal(constants, effective_radius, effective_mass, normal_overlap, norm
     return force, 2.0 * effective_modulus * a, a
 
 
+@numba.njit(cache=True, inline="always")
+def jkr_friction_load(constants, effective_radius, elastic_normal_force, normal_force):
+    """Thornton & Yin (1991): an adhesive JKR contact slides when |Ft| = mu (P + 2 Fc), P
+    the JKR force, Fc = 3/2 pi gamma R* (as LAMMPS' granular jkr, on the elastic force):
+    positive down to the end of the curve (P >= -Fc), so the contact has friction at
+    zero and at tensile load, where the total normal force would give none."""
+    return elastic_normal_force + 3.0 * math.pi * constants[1] * effective_radius
+
+
 def _jkr_reach(pair, constants, effective_radius):
     return jkr_critical_separation(constants["effective_modulus"], constants["surface_energy"], effective_radius)
 
@@ -124,14 +144,16 @@ JKR = ContactPart(
     function=jkr_normal,
     energy=("store", "dissipate", "supply"),
     # Hertzian at the contact radius (Hertz's curve when gamma = 0): the Hertz dashpot
-    # and Mindlin's stiffness apply at the JKR contact radius, as in LAMMPS' granular jkr
+    # reads kn = 2 E* a at the JKR contact radius, as in LAMMPS' granular jkr; mindlin
+    # computes its own stiffness 8 G* sqrt(R* d) from the overlap (none in tension)
     provides=("hertzian", "adhesive"),
     reach=_jkr_reach,
     contact_time=HERTZ.contact_time,  # Hertz's duration (eq 13): the time step's scale
     stiffness=_jkr_stiffness,
     supply_bound=_jkr_supply_bound,
     pull_off=lambda pair, c, radius: 1.5 * math.pi * c["surface_energy"] * radius,
-    reference=JKR_REFERENCE,
+    friction_load=jkr_friction_load,
+    reference=JKR_REFERENCE + "; Thornton & Yin (1991), J. Phys. D 24, 1942-1946 (friction limit)",
 )
 
 
@@ -139,10 +161,9 @@ JKR = ContactPart(
 def dmt_normal(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment, history):
     """Fn = 4/3 E* sqrt(R*) d^1.5 - 2 pi gamma R* while d > 0 (no reach: formed and broken
     at touch); the Hertz tangent stiffness and contact radius."""
-    stiffness = constants[0] * math.sqrt(effective_radius)
-    root = math.sqrt(normal_overlap)
-    return (stiffness * normal_overlap * root - 2.0 * math.pi * constants[1] * effective_radius, 1.5 * stiffness * root,
-            math.sqrt(effective_radius * normal_overlap))
+    force, stiffness, contact_radius = hertz_normal(constants, effective_radius, effective_mass, normal_overlap,
+                                                    normal_overlap_increment, history)
+    return force - 2.0 * math.pi * constants[1] * effective_radius, stiffness, contact_radius
 
 
 def _dmt_supply_bound(pair, constants, effective_radius):
@@ -152,23 +173,74 @@ def _dmt_supply_bound(pair, constants, effective_radius):
     return pull * (pull / (constants["hertz_modulus"] * math.sqrt(effective_radius))) ** (2.0 / 3.0)
 
 
-DMT = ContactPart(
-    name="dmt",
-    kind="normal",
-    description="DMT adhesion: Fn = 4/3 E* sqrt(R*) d^1.5 - 2 pi gamma R* while touching; pull-off 2 pi gamma R*",
-    parameters=(SURFACE_ENERGY,),
-    constants=("hertz_modulus", "surface_energy"),
-    history=(),
-    prepare=lambda pair, params, prepared: {"hertz_modulus": 4.0 / 3.0 * pair.effective_modulus,
-                                            "surface_energy": params["surface_energy"]},
-    function=dmt_normal,
-    energy=("store", "supply"),
-    provides=("hertzian", "adhesive"),
-    contact_time=HERTZ.contact_time,  # Hertz's duration (eq 13): the time step's scale
-    stiffness=lambda pair, c, radius, mass, overlap: 2.0 * pair.effective_modulus * math.sqrt(radius * overlap),
-    supply_bound=_dmt_supply_bound,
-    pull_off=lambda pair, c, radius: 2.0 * math.pi * c["surface_energy"] * radius,
-    reference=DMT_REFERENCE,
-)
+def _hertz_less_attraction(name, description, parameter, function, supply_bound, pull_off, reference):
+    """A normal part on Hertz's curve less an attraction while the surfaces overlap (dmt,
+    sjkr): constants 4/3 E* and the attraction's parameter, Hertz's contact time and
+    stiffness (passed on to the dashpot and the time step); no reach."""
+    return ContactPart(
+        name=name,
+        kind="normal",
+        description=description,
+        parameters=(parameter,),
+        constants=("hertz_modulus", parameter.name),
+        history=(),
+        prepare=lambda pair, params, prepared: {"hertz_modulus": 4.0 / 3.0 * pair.effective_modulus,
+                                                parameter.name: params[parameter.name]},
+        function=function,
+        energy=("store", "supply"),
+        provides=("hertzian", "adhesive"),
+        contact_time=HERTZ.contact_time,  # Hertz's duration (eq 13): the time step's scale
+        stiffness=HERTZ.stiffness,
+        supply_bound=supply_bound,
+        pull_off=pull_off,
+        reference=reference,
+    )
 
-PARTS = [JKR, DMT]
+
+DMT = _hertz_less_attraction(
+    "dmt", "DMT adhesion: Fn = 4/3 E* sqrt(R*) d^1.5 - 2 pi gamma R* while touching; pull-off 2 pi gamma R*",
+    SURFACE_ENERGY, dmt_normal, _dmt_supply_bound,
+    lambda pair, c, radius: 2.0 * math.pi * c["surface_energy"] * radius, DMT_REFERENCE)
+
+COHESION_ENERGY_DENSITY = Parameter(
+    "cohesion_energy_density", None, "J/m^3", "k of the simplified JKR: cohesive force k A over the overlap "
+    "area A (LIGGGHTS' cohesionEnergyDensity); per material pair through [contact.pairs]", low=0.0, required=True)
+LIGGGHTS = ("LIGGGHTS-PUBLIC 3.8, gran cohesion sjkr (DCS Computing / CFDEM); Kloss et al. (2012), "
+            "Prog. Comput. Fluid Dyn. 12, 140-152")
+
+
+@numba.njit(cache=True, inline="always")
+def sjkr_normal(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment, history):
+    """Fn = 4/3 E* sqrt(R*) d^1.5 - k 2 pi R* d while d > 0 (module docstring); passes on
+    Hertz's tangent stiffness and contact radius (the dashpot and Mindlin act as with
+    hertz, as LIGGGHTS adds the cohesion after its normal model's damping)."""
+    force, stiffness, contact_radius = hertz_normal(constants, effective_radius, effective_mass, normal_overlap,
+                                                    normal_overlap_increment, history)
+    return force - 2.0 * math.pi * constants[1] * effective_radius * normal_overlap, stiffness, contact_radius
+
+
+def _sjkr_attraction(constants, effective_radius):
+    """(K, c): Fn = K d^1.5 - c d."""
+    return (constants["hertz_modulus"] * math.sqrt(effective_radius),
+            2.0 * math.pi * constants["cohesion_energy_density"] * effective_radius)
+
+
+def _sjkr_supply_bound(pair, constants, effective_radius):
+    """The cohesion c d does at most c d0^2 / 2 of work from touch to d0 = (c/K)^2, where
+    the Hertz force takes over (the well itself is c d0^2 / 10 deep)."""
+    hertz, cohesion = _sjkr_attraction(constants, effective_radius)
+    return 0.5 * cohesion * (cohesion / hertz) ** 4
+
+
+def _sjkr_pull_off(pair, constants, effective_radius):
+    """The largest tension, at d* = (2c / 3K)^2: 4 c^3 / (27 K^2)."""
+    hertz, cohesion = _sjkr_attraction(constants, effective_radius)
+    return 4.0 * cohesion**3 / (27.0 * hertz**2)
+
+
+SJKR = _hertz_less_attraction(
+    "sjkr", "simplified JKR (LIGGGHTS cohesion sjkr): Hertz - k A while overlapping, A = 2 pi R* d the overlap "
+    "area: Fn = 4/3 E* sqrt(R*) d^1.5 - 2 pi k R* d", COHESION_ENERGY_DENSITY, sjkr_normal, _sjkr_supply_bound,
+    _sjkr_pull_off, LIGGGHTS)
+
+PARTS = [JKR, DMT, SJKR]
