@@ -138,6 +138,18 @@ def command_run(args) -> int:
     return EXIT_OK
 
 
+def _particle_counts(text: str) -> tuple[int, ...]:
+    """``--sizes``: comma-separated particle counts, each a whole number >= 2."""
+    try:
+        counts = tuple(int(part.replace("_", "")) for part in text.split(","))
+    except ValueError:
+        counts = ()
+    if not counts or min(counts) < 2:
+        raise argparse.ArgumentTypeError(f"'{text}': expected particle counts >= 2 separated by commas, "
+                                         "e.g. 2000,20000,200000,1000000")
+    return counts
+
+
 def _note(text: str) -> None:
     """What a slow step of the set-up is doing (before the header: the time step needs it)."""
     print(f"minidem: {text} ...", file=sys.stderr, flush=True)
@@ -342,6 +354,10 @@ def build_parser() -> argparse.ArgumentParser:
                                                              "sweep-timing", "multi-particle", "compile"),
                        help="run only this section (repeatable); multi-particle and compile (the compile time "
                             "of each shipped law and combination) run only when named")
+    bench.add_argument("--sizes", type=_particle_counts, default=None, metavar="N,N,...",
+                       help="multi-particle: the particle counts of the settle scene (default 2000,20000); e.g. "
+                            "2000,20000,200000,1000000 adds the scale variants, which run fewer steps (at most "
+                            "2e9 particle-steps a run: 2,000 steps at 1,000,000) and take hours with LIGGGHTS")
     bench.add_argument("--docs", type=Path, default=None, help="docs directory to write (default: the project's)")
     bench.set_defaults(handler=command_bench)
     return parser

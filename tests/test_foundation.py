@@ -289,3 +289,26 @@ def test_run_piped_into_a_closed_reader_still_writes_its_results(tmp_path):
     assert piped.returncode == 0, piped.stderr
     assert "Error" not in piped.stderr
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["law"] == "hmd"
+
+
+def test_bench_sizes_are_checked_and_the_million_sphere_variant_fits_its_box():
+    # `minidem bench --sizes`: a bad list is refused with exit 2 and a valid example,
+    # before anything runs
+    done = run_cli("bench", "--only", "multi-particle", "--sizes", "2000,lots")
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert "--sizes" in done.stderr and "2000,20000,200000,1000000" in done.stderr
+    # settle.md's largest variant: 1,000,000 spheres are 494 layers of 45 x 45 at 2.2 mm,
+    # 1.088 m of centres, more than the scene file's 1 m box; the bench raises box and
+    # fill as make_lattice.py does, and runs 2,000 steps (settle.md: "e.g. 2,000")
+    from minidem.studies import bench_multi
+
+    n = 1_000_000
+    height = bench_multi.box_height(n)
+    scene = scenario.load_scene(bench_multi.SETTLE, [f"fill.0.count={n}", f"fill.0.upper=[0.1, 0.1, {height!r}]",
+                                                     f"walls.0.upper=[0.1, 0.1, {height!r}]"], "-")
+    assert scene.n_particles == n
+    assert scene.position[:, 2].max() == pytest.approx(1.1e-3 + 493 * 2.2e-3)
+    assert scene.position[:, 2].max() + scene.radius.max() < height
+    assert bench_multi.box_height(20_000) is None  # the shipped box holds the default sizes
+    assert (bench_multi.steps_for(20_000), bench_multi.steps_for(200_000), bench_multi.steps_for(n)) == (
+        10_000, 10_000, 2_000)

@@ -314,6 +314,39 @@ def test_history_survives_neighbour_list_rebuilds_bit_for_bit():
     assert np.array_equal(many.angular_velocity, once.angular_velocity)
 
 
+def test_last_good_copy_keeps_the_touching_contacts_rows_and_gives_every_bit_back():
+    # The last good state (State.capture) keeps, of the per-contact histories and
+    # reactions, only the rows that are not all zero. A contact that ends drops its
+    # history and its reaction, and one that never touched has none: so the rows kept
+    # must be touching contacts (overlap > 0; this law has no reach), and expanding the
+    # copy must give the live arrays back bit for bit (-0.0 included), also after the
+    # live state has been overwritten (State.restore, as a failure does).
+    scene = scenario.load_scene("scenarios/bench/settle.toml",
+                                DEEP_PILE[1:] + ["fill.0.count=100", "run.end_time=0.03"] + ONE_THREAD)
+    sim = simulation.Simulation(scene)
+    sim.run()
+    state = sim.state
+    copy_ = state.capture()
+    live = {"pair_history": state.pairs[2], "pair_reaction": state.pairs[4], "plane_history": state.planes[3]}
+    pair_touching = state.pairs[3] > 0.0
+    reaction_touching = np.zeros_like(pair_touching)  # reactions are stored at each entry's slot
+    reaction_touching[state.pairs[5]] = pair_touching
+    touching = {"pair_history": pair_touching, "pair_reaction": reaction_touching,
+                "plane_history": (state.planes[4] > 0.0).any(axis=1)}
+    for name, array in live.items():
+        rows = copy_[name + "@rows"]
+        assert name not in copy_ and 0 < len(rows) <= touching[name].sum()
+        assert touching[name][rows].all(), f"{name}: a row kept for a contact that does not touch"
+        assert copy_[name + "@values"].nbytes < array.nbytes
+    saved = {name: array.copy() for name, array in simulation.full_arrays(copy_).items() if name != "builds"}
+    state.pairs[2][...] = -0.0
+    state.planes[3][...] = np.nan
+    state.restore(copy_)
+    restored = {name: simulation._full_array(state.capture(), name) for name in saved}
+    for name, array in saved.items():
+        assert np.array_equal(array.view(np.uint8), restored[name].view(np.uint8)), name
+
+
 def test_same_bits_on_one_and_two_threads(monkeypatch):
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("needs two threads")

@@ -30,7 +30,7 @@ import numba
 
 from minidem.contact import laws
 
-_GENERATOR_VERSION = "1"  # bump when the generated source below changes shape
+_GENERATOR_VERSION = "2"  # bump when the generated source below changes shape
 
 
 def check_combination(parts: tuple[laws.ContactPart, ...]) -> None:
@@ -173,18 +173,32 @@ def _generated_force(parts: tuple[laws.ContactPart, ...]):
     """Write (once) and import the module holding the combination's force function."""
     lines, imports = [], []
     call = _part_calls(parts, imports, 0, 0)
+    normal = next(p for p in parts if p.kind == "normal")
+    functions = [p.function for p in parts]
     lines.append("    elastic, stiffness, contact_radius = normal_part(\n"
                  f"        {call['normal'][0]}, effective_radius, effective_mass, normal_overlap, "
                  f"normal_overlap_increment, {call['normal'][1]})")
     if "damping" in call:
-        lines.append(f"    normal_force = elastic + damping_part({call['damping'][0]}, effective_radius, "
-                     "effective_mass, normal_overlap, normal_velocity, stiffness, elastic)")
+        dashpot = (f"damping_part({call['damping'][0]}, effective_radius, effective_mass, normal_overlap, "
+                   "normal_velocity, stiffness, elastic)")
+        if "supply" in normal.energy:
+            # an adhesive normal part (energy role 'supply', as verify tells adhesion)
+            # pulls: its tension, and the dashpot's, is kept
+            lines.append(f"    normal_force = elastic + {dashpot}")
+        else:
+            # a non-adhesive contact never pulls: the same rule as the paper's laws
+            # (common.damped_normal_force), for which the damping parts map e
+            # (its code joins the module's hash: a changed rule never reuses a stale kernel)
+            from minidem.contact.builtin_laws.common import damped_normal_force
+
+            imports.append("from minidem.contact.builtin_laws.common import damped_normal_force")
+            lines.append(f"    normal_force = damped_normal_force(elastic, {dashpot})")
+            functions.append(damped_normal_force)
     else:
         lines.append("    normal_force = elastic")
     # the load of the friction limits: the total normal force, or the normal part's own
     # (an adhesive contact's, laws.ContactPart.friction_load)
-    normal = next(p for p in parts if p.kind == "normal")
-    functions, load = [p.function for p in parts], "normal_force"
+    load = "normal_force"
     if normal.friction_load is not None:
         module, attribute = laws.import_name(normal.friction_load, "friction_load")
         imports.append(f"from {module} import {attribute} as normal_friction_load")

@@ -11,6 +11,7 @@ hands frames to an output callback.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import dataclasses
 import functools
 import hashlib
@@ -348,6 +349,74 @@ _STATE_TUPLES = {
 }
 
 
+# per-contact arrays whose rows are all zero while the contact is not touching (a contact
+# that ends drops its history and its reaction): the last good state keeps only the rows
+# in use (State.capture)
+_SPARSE_ROWS = ("plane_history", "cylinder_history", "mesh_history", "pair_history", "pair_reaction")
+_SPARSE_PARTS = ("@rows", "@values", "@shape")
+
+
+def _sparse_rows(name: str, array: np.ndarray) -> dict[str, np.ndarray]:
+    """``array`` as its rows (first index) that hold any non-zero bit: {name@rows: their
+    indices, name@values: the rows, name@shape: the shape}. Bits, not values, so a row
+    of -0.0 is kept and the expansion gives every bit back."""
+    rows = np.zeros(0, dtype=np.int64)
+    if array.size:
+        # an OR of the columns' bits, then np.take: several times faster than
+        # (bits != 0).any(axis=1) and fancy indexing (settle, N = 200,000)
+        bits = array.reshape(array.shape[0], -1).view(np.uint64)
+        in_use = bits[:, 0].copy()
+        for column in range(1, bits.shape[1]):
+            in_use |= bits[:, column]
+        rows = np.flatnonzero(in_use)
+    return {name + "@rows": rows, name + "@values": np.take(array, rows, axis=0),
+            name + "@shape": np.array(array.shape, dtype=np.int64)}
+
+
+def _full_array(arrays: dict, name: str) -> np.ndarray:
+    """The array ``name`` of a capture, expanded if it was captured sparse."""
+    if name in arrays:
+        return arrays[name]
+    full = np.zeros(tuple(arrays[name + "@shape"]))
+    full[arrays[name + "@rows"]] = arrays[name + "@values"]
+    return full
+
+
+def full_arrays(arrays: dict) -> dict[str, np.ndarray]:
+    """A capture with its sparse arrays expanded: the arrays a checkpoint file holds."""
+    out = {name: array for name, array in arrays.items() if "@" not in name}
+    for name in _SPARSE_ROWS:
+        if name + "@rows" in arrays:
+            out[name] = _full_array(arrays, name)
+    return out
+
+
+# glibc's malloc serves blocks above its mmap threshold (128 KiB) from their own mappings,
+# returned to the system when freed, but raises the threshold to the size of every such
+# block freed (up to 32 MiB): after the first neighbour-list rebuild the lists of later
+# ones came from the heap, whose freed pieces stay resident. Fixed at the default, the
+# peak of the settle scene (N = 20,000, 3,000 steps, 27 rebuilds) fell from 181 to 175 MiB.
+_MMAP_THRESHOLD, _M_MMAP_THRESHOLD = 128 * 1024, -3
+
+
+@functools.cache
+def _keep_large_arrays_mapped() -> bool:
+    """Fix glibc's mmap threshold (once per process); False where there is no mallopt
+    (another C library), which changes nothing but the peak memory."""
+    try:
+        return bool(ctypes.CDLL(None).mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD))
+    except (AttributeError, OSError):
+        return False
+
+
+def pair_index_type(n_entries: int, n_particles: int):
+    """The integer type of the pair list's partners and reaction slots: int32 below 2^31
+    entries and particles (4 bytes an entry saved twice, and once more in the last good
+    state), else int64. One type for every list of a run, so the kernel is compiled for
+    one signature."""
+    return np.int32 if max(n_entries, n_particles) < 2**31 else np.int64
+
+
 class State:
     """The arrays the compiled kernel advances, grouped as it takes them.
 
@@ -385,8 +454,9 @@ class State:
                        np.zeros((0, h)), np.zeros(0))
         # (offsets, partners, history, overlap, reactions (force on i, torque on j) in the
         # transposed list's order, each entry's slot there, transposed offsets)
-        self.pairs = (np.zeros(n + 1, dtype=np.int64), empty_index, np.zeros((0, h)), np.zeros(0),
-                      np.zeros((0, 6)), empty_index, np.zeros(n + 1, dtype=np.int64))
+        pair_index = np.zeros(0, dtype=pair_index_type(0, n))
+        self.pairs = (np.zeros(n + 1, dtype=np.int64), pair_index, np.zeros((0, h)), np.zeros(0),
+                      np.zeros((0, 6)), pair_index, np.zeros(n + 1, dtype=np.int64))
         self.position_at_build = self.position.copy()
         self.builds = 0
 
@@ -409,6 +479,14 @@ class State:
         reused where their shapes still fit (a copy into existing memory is ten times
         cheaper than a new allocation), and one that no longer fits is released before
         its replacement is allocated, so that a run never holds two old copies.
+
+        The per-contact histories and reactions (``_SPARSE_ROWS``) are kept as their
+        non-zero rows only (see :func:`_sparse_rows`): a row is zero while its
+        wall or pair is not touching, most of them in a pile (a sphere of the settle
+        scene touches no wall, and about two in three of its listed pairs are apart),
+        so the last good state costs about half the memory of the live one.
+        :meth:`restore` and :func:`full_arrays` (what a checkpoint file holds) give the
+        same bits back.
         """
         live = {name: getattr(self, name) for name in _STATE_ARRAYS}
         for group, names in _STATE_TUPLES.items():
@@ -416,11 +494,18 @@ class State:
         arrays = {} if into is None else into
         for name, array in live.items():
             target = arrays.pop(name, None)
-            if target is not None and target.shape == array.shape and target.dtype == array.dtype:
+            if name in _SPARSE_ROWS:
+                del target
+                for part in _SPARSE_PARTS:
+                    arrays.pop(name + part, None)  # the old copy goes before the new one is made
+                arrays.update(_sparse_rows(name, array))
+            elif target is not None and target.shape == array.shape and target.dtype == array.dtype:
                 np.copyto(target, array)
                 arrays[name] = target
             else:
                 del target
+                for part in _SPARSE_PARTS:
+                    arrays.pop(name + part, None)
                 arrays[name] = array.copy()
         arrays["builds"] = np.array(self.builds, dtype=np.int64)
         return arrays
@@ -432,7 +517,7 @@ class State:
             items = list(getattr(self, group))
             for k, name in enumerate(names):
                 if name is not None:  # replaced: list rebuilds change the lengths
-                    items[k] = np.array(arrays[name], dtype=items[k].dtype, order="C")
+                    items[k] = np.array(_full_array(arrays, name), dtype=items[k].dtype, order="C")
             setattr(self, group, tuple(items))
         offsets, partners = self.pairs[:2]
         if partners.shape[0]:
@@ -768,14 +853,20 @@ class Simulation:
         """New Verlet lists at the current positions; every contact keeps its history."""
         radius = self.scene.radius
         if self.pairs:
-            old_offsets, old_neighbours, old_history, old_overlap = state.pairs[:4]
-            # the old reactions, slots and transposed offsets go now, before the new list
-            # is allocated: a rebuild holds two copies of the history, not of everything
-            state.pairs = state.pairs[:4] + (None, None, None)
-            offsets, found = neighbours.build_pairs(state.position, radius, self.skin + self.max_reach)
-            history, overlap = neighbours.carry_history(old_offsets, old_neighbours, old_history, old_overlap,
-                                                        offsets, found)
-            del old_offsets, old_neighbours, old_history, old_overlap
+            old = state.pairs[:4]  # offsets, partners, history, overlap
+            # The old list is referenced by ``old`` alone from here, and released once its
+            # histories are carried over, before the reactions and their slots are
+            # allocated: at its peak a rebuild holds the old list and the new one with its
+            # histories, not two whole sets of pair arrays.
+            state.pairs = None
+            try:
+                offsets, found = neighbours.build_pairs(state.position, radius, self.skin + self.max_reach)
+                found = found.astype(pair_index_type(found.shape[0], len(radius)), copy=False)
+                history, overlap = neighbours.carry_history(*old, offsets, found)
+            except BaseException:
+                state.pairs = old + (None, None, None)  # as before the call (a failure restores from it)
+                raise
+            del old
             if state.builds == 0:
                 # t = 0: spheres may start touching; their overlap is the 'previous' one
                 first = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
@@ -812,6 +903,7 @@ class Simulation:
         restoring ``self.state`` to the last good state (and writing it, with checkpoints).
         """
         scene, k = self.scene, self.kernel
+        _keep_large_arrays_mapped()
         threads_before = numba.get_num_threads()
         threads = min(scene.threads or numba.config.NUMBA_NUM_THREADS, numba.config.NUMBA_NUM_THREADS)
         loop_threads = threads if self.parallel and scene.n_particles >= PARALLEL_MIN_PARTICLES else 1
@@ -1050,7 +1142,7 @@ class _RunLoop:
 
     def write_state(self, name, snap, kind):
         sim = self.sim
-        arrays = dict(snap["arrays"])
+        arrays = full_arrays(snap["arrays"])  # the files hold every row
         arrays["probe"], arrays["stats"], arrays["status"] = snap["tracking"]
         arrays["energy"] = np.array(self.energy[:snap["energy"]], dtype=np.float64).reshape(-1, 2)
         arrays["trace"] = np.concatenate(self.trace_chunks[:snap["trace"]]) if snap["trace"] else self.no_trace

@@ -63,6 +63,7 @@ def compile_shared(pairs: bool, meshes: bool) -> None:
     needs, by calling them on two particles with the argument types the engine passes
     (C-contiguous float64 and int64 arrays, a float skin, an int count)."""
     from minidem.engine import blowup, integrate
+    from minidem.engine.simulation import pair_index_type
     from minidem.geometry import neighbours
 
     n, h = 2, 3
@@ -71,8 +72,11 @@ def compile_shared(pairs: bool, meshes: bool) -> None:
     history, overlap = np.zeros((0, h)), np.zeros(0)
     index = np.zeros(0, dtype=np.int64)
     if pairs:
+        # the pair list's partners in the engine's integer type (Simulation.rebuild)
         offsets, found = neighbours.build_pairs(position, scalar, 0.5)
-        neighbours.carry_history(np.zeros(n + 1, dtype=np.int64), index, history, overlap, offsets, found)
+        found = found.astype(pair_index_type(found.shape[0], n), copy=False)
+        neighbours.carry_history(np.zeros(n + 1, dtype=np.int64), index.astype(found.dtype), history, overlap,
+                                 offsets, found)
         neighbours.reverse_index(offsets, found, n)
     if meshes:
         triangles = np.array([[[0.0, 0.0, -1.0], [1.0, 0.0, -1.0], [0.0, 1.0, -1.0]]])

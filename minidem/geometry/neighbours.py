@@ -365,7 +365,7 @@ def reverse_index(offsets, neighbours, n_particles):
     """The transposed half list: for each particle p the entries (i, p) naming it as the
     partner, in ascending i (a counting sort, O(N + M)).
 
-    Returns (reverse_offsets (N + 1,), slot (M,)): p's entries occupy positions
+    Returns (reverse_offsets (N + 1,) int64, slot (M,) of the neighbours' type): p's entries occupy positions
     reverse_offsets[p]..reverse_offsets[p + 1] of the transposed order, and entry e is
     at position slot[e]. The engine stores each pair's reaction at its slot, so p reads
     its reactions contiguously and adds them in a fixed order whatever the thread count.
@@ -376,7 +376,9 @@ def reverse_index(offsets, neighbours, n_particles):
     for p in range(n_particles):
         reverse_offsets[p + 1] += reverse_offsets[p]
     next_slot = reverse_offsets[:-1].copy()
-    slot = np.empty(neighbours.shape[0], dtype=np.int64)
+    # the partners' integer type (int32 in the engine's lists): a slot is below the
+    # number of entries, which the engine keeps in that type's range
+    slot = np.empty(neighbours.shape[0], dtype=neighbours.dtype)
     for i in range(n_particles):
         for e in range(offsets[i], offsets[i + 1]):
             j = neighbours[e]

@@ -698,7 +698,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
     _particle_tables(data, errors, material_of, bodies)
     impact = _impact(data, errors, material_of, walls, bodies)
     _fills(data, source, errors, material_of, bodies)
-    if not bodies.radius and not errors.messages:
+    if not bodies.count and not errors.messages:
         errors.add("", "the scene has no particles: add an [impact] block, [[particles]] or [[fill]]")
     run = _check_table(data.get("run", {}), SCHEMA["run"][1], "run", errors)
     if run.get("stop") == "time" and run.get("end_time") is None and not errors.has("run.end_time"):
@@ -714,11 +714,11 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
         law_name=law_name,
         law_parameters=law_parameters,
         pair_parameters=pair_parameters,
-        position=np.array(bodies.position, dtype=np.float64).reshape(-1, 3),
-        velocity=np.array(bodies.velocity, dtype=np.float64).reshape(-1, 3),
-        angular_velocity=np.array(bodies.spin, dtype=np.float64).reshape(-1, 3),
-        radius=np.array(bodies.radius, dtype=np.float64),
-        particle_material=np.array(bodies.material, dtype=np.int64),
+        position=bodies.array(0, (0, 3)),
+        velocity=bodies.array(1, (0, 3)),
+        angular_velocity=bodies.array(2, (0, 3)),
+        radius=bodies.array(3, (0,)),
+        particle_material=bodies.array(4, (0,)),
         wall_point=np.array(walls.point, dtype=np.float64).reshape(-1, 3),
         wall_normal=np.array(walls.normal, dtype=np.float64).reshape(-1, 3),
         wall_material=np.array(walls.material, dtype=np.int64),
@@ -876,20 +876,38 @@ def _wall_tables(data: dict, source: str, errors: _Errors, material_of, walls: _
 
 @dataclasses.dataclass
 class _Bodies:
-    """The particles read so far, one list per quantity (SI), and the index range of
-    each [[fill]]."""
+    """The particles read so far, in blocks (one [[particles]] table, the impact sphere
+    or a whole [[fill]]: arrays in SI, never one Python object per particle, which cost
+    about 360 bytes a particle at the scene's assembly: more than the run itself at
+    1,000,000 particles), and the index range of each [[fill]]."""
 
-    position: list = dataclasses.field(default_factory=list)
-    velocity: list = dataclasses.field(default_factory=list)
-    spin: list = dataclasses.field(default_factory=list)
-    radius: list = dataclasses.field(default_factory=list)
-    material: list = dataclasses.field(default_factory=list)
+    blocks: list = dataclasses.field(default_factory=list)  # (position, velocity, spin, radius, material)
+    count: int = 0
     fill_ranges: list = dataclasses.field(default_factory=list)
 
     def insert(self, index, position, velocity, spin, radius, material) -> None:
-        for values, value in zip((self.position, self.velocity, self.spin, self.radius, self.material),
-                                 (position, velocity, spin, radius, material)):
-            values.insert(index, value)
+        """One sphere, first (index 0) or after the others (index = count)."""
+        block = (np.reshape(np.asarray(position, dtype=np.float64), (1, 3)),
+                 np.reshape(np.asarray(velocity, dtype=np.float64), (1, 3)),
+                 np.reshape(np.asarray(spin, dtype=np.float64), (1, 3)), np.array([radius], dtype=np.float64),
+                 np.array([material], dtype=np.int64))
+        self.blocks.insert(0 if index == 0 else len(self.blocks), block)
+        self.count += 1
+
+    def extend(self, position, velocity, spin, radius, material) -> None:
+        """A block of spheres after the others; ``material`` one id for all."""
+        n = len(radius)
+        self.blocks.append((np.asarray(position, dtype=np.float64).reshape(n, 3),
+                            np.asarray(velocity, dtype=np.float64).reshape(n, 3),
+                            np.asarray(spin, dtype=np.float64).reshape(n, 3), np.asarray(radius, dtype=np.float64),
+                            np.full(n, material, dtype=np.int64)))
+        self.count += n
+
+    def array(self, k: int, shape) -> np.ndarray:
+        """Quantity k of every block (0 position ... 4 material), in one array."""
+        if not self.blocks:
+            return np.zeros(shape, dtype=np.int64 if k == 4 else np.float64)
+        return np.concatenate([block[k] for block in self.blocks])
 
 
 def _particle_tables(data: dict, errors: _Errors, material_of, bodies: _Bodies) -> None:
@@ -898,7 +916,7 @@ def _particle_tables(data: dict, errors: _Errors, material_of, bodies: _Bodies) 
         where = f"particles[{index}]"
         values = _check_table(table, SCHEMA["particles"][1], where, errors)
         if all(k in values and values[k] is not None for k in ("position", "radius", "velocity", "angular_velocity")):
-            bodies.insert(len(bodies.radius), values["position"], values["velocity"], values["angular_velocity"],
+            bodies.insert(bodies.count, values["position"], values["velocity"], values["angular_velocity"],
                           values["radius"], material_of(values.get("material"), f"{where}.material"))
     if "particles" in data and not isinstance(data["particles"], list):
         errors.add("particles", "expected an array of tables: [[particles]]")
@@ -938,10 +956,9 @@ def _fills(data: dict, source: str, errors: _Errors, material_of, bodies: _Bodie
         errors.add("fill", "expected an array of tables: [[fill]]")
         fills = []
     for index, table in enumerate(fills):
-        first = len(bodies.radius)
-        _fill(table, f"fill[{index}]", source, errors, material_of, bodies.position, bodies.velocity, bodies.spin,
-              bodies.radius, bodies.material)
-        bodies.fill_ranges.append((first, len(bodies.radius)))
+        first = bodies.count
+        _fill(table, f"fill[{index}]", source, errors, material_of, bodies)
+        bodies.fill_ranges.append((first, bodies.count))
 
 
 def _required(values, keys, kind, where, errors) -> bool:
@@ -1000,8 +1017,8 @@ def _shaped_wall(kind, values, where, source, errors, material_of, wall_point, w
             meshes.append((vertices, faces, material, index, str(path)))
 
 
-def _fill(table, where, source, errors, material_of, position, velocity, spin, radius, particle_material) -> None:
-    """Particles from a [[fill]] generator (see minidem/scene/fills.py), appended to the lists."""
+def _fill(table, where, source, errors, material_of, bodies: _Bodies) -> None:
+    """Particles from a [[fill]] generator (see minidem/scene/fills.py), appended to ``bodies``."""
     from minidem.scene import fills as generators
 
     values = _check_table(table, SCHEMA["fill"][1], where, errors)
@@ -1040,11 +1057,7 @@ def _fill(table, where, source, errors, material_of, position, velocity, spin, r
     except ValueError as exc:
         errors.add(where, str(exc))
         return
-    position.extend(centres)
-    velocity.extend(speeds)
-    spin.extend(spins)
-    radius.extend(radii.tolist())
-    particle_material.extend([material] * len(centres))
+    bodies.extend(centres, speeds, spins, radii, material)
 
 
 def _impact_velocity(table: dict, values: dict, errors: _Errors) -> None:

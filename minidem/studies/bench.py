@@ -568,11 +568,15 @@ def update_sections(path: Path, sections: dict[str, str]) -> None:
     atomic_write(path, text)
 
 
-def run(quick: bool = False, docs: Path = DOCS, sections=ALL_SECTIONS, echo=print) -> dict:
+def run(quick: bool = False, docs: Path = DOCS, sections=ALL_SECTIONS, echo=print, sizes=None) -> dict:
+    """``sizes``: the particle counts of the multi-particle section (default
+    bench_multi.SIZES)."""
     settings = QUICK if quick else FULL
     command = "minidem bench" + (" --quick" if quick else "")
     if tuple(sections) != ALL_SECTIONS:
         command += "".join(f" --only {s}" for s in sections)
+    if sizes:
+        command += " --sizes " + ",".join(str(n) for n in sizes)
     results, texts = {}, {}
     if "single-impact" in sections:
         echo(f"bench: engine against the reference, {len(settings['angles'])} angles x {len(reference.LAWS)} laws")
@@ -599,7 +603,8 @@ def run(quick: bool = False, docs: Path = DOCS, sections=ALL_SECTIONS, echo=prin
         from minidem.studies import bench_multi
 
         echo("bench: multi-particle throughput (settle scene, minidem and LIGGGHTS interleaved)")
-        texts["multi-particle"] = bench_multi.run(1 if quick else 3, command, stamp, echo)
+        texts["multi-particle"] = bench_multi.run(1 if quick else 3, command, stamp, echo,
+                                                  sizes=tuple(sizes) if sizes else bench_multi.SIZES)
     if "compile" in sections:
         from minidem.studies import bench_compile
 
@@ -618,5 +623,6 @@ def run(quick: bool = False, docs: Path = DOCS, sections=ALL_SECTIONS, echo=prin
 
 
 def command(args) -> int:
-    run(quick=args.quick, docs=args.docs or DOCS, sections=tuple(args.only) if args.only else ALL_SECTIONS)
+    run(quick=args.quick, docs=args.docs or DOCS, sections=tuple(args.only) if args.only else ALL_SECTIONS,
+        sizes=args.sizes)
     return 0

@@ -1,7 +1,8 @@
 """``minidem bench --only multi-particle``: throughput of the "settle" scene beside LIGGGHTS.
 
 The scene is ../shared/bench/settle.md (``scenarios/bench/settle.toml``): variants "lattice" and
-"jitter", N = 2,000 and 20,000, 10,000 steps of 2e-5 s. Every run is a fresh process, so
+"jitter", N = 2,000 and 20,000 (``--sizes`` adds the scale variants, 200,000 and
+1,000,000: fewer steps, ``steps_for``), 10,000 steps of 2e-5 s. Every run is a fresh process, so
 its peak memory is that process's own (``ru_maxrss`` from ``os.wait4``). minidem runs on
 one and two threads; LIGGGHTS 3.8 (``liggghts`` on the PATH, Debian's package) runs the
 shared input script ``bench/liggghts/in.settle`` on one core, interleaved with minidem's
@@ -29,6 +30,11 @@ ROOT = Path(__file__).resolve().parents[2]
 SETTLE = ROOT / "scenarios" / "bench" / "settle.toml"
 SHARED_BENCH = ROOT.parent / "shared" / "bench" / "liggghts"
 STEPS, DT = 10_000, 2e-5
+# The scale variants (settle.md: N = 200,000 and 1,000,000, "fewer steps") run at most this
+# many particle-steps: 10,000 steps up to 200,000 particles, 2,000 at 1,000,000
+MOST_PARTICLE_STEPS = 2_000_000_000
+SIZES = (2_000, 20_000)
+LAYER_SITES, SPACING, FIRST_CENTRE = 45 * 45, 2.2e-3, 1.1e-3  # the lattice of settle.md
 JITTER = {"lattice": 0.0, "jitter": 9e-5}  # m, as in settle.md and make_lattice.py
 
 _CHILD = """
@@ -41,6 +47,8 @@ if threads.endswith("pinned"):  # every chunk on that many threads: no probes of
     simulation.LoopThreads.PROBE_FIRST = 10**9
 overrides = [f"fill.0.count={n}", f"fill.0.jitter={jitter}", f"run.threads={threads}",
              f"run.end_time={int(steps) * 2e-5!r}", f"output.vtk={vtk}"]
+if sys.argv[8] != "-":  # a column taller than the scene file's 1 m box (above 919,000 spheres)
+    overrides += [f"fill.0.upper=[0.1, 0.1, {sys.argv[8]}]", f"walls.0.upper=[0.1, 0.1, {sys.argv[8]}]"]
 scene = scenario.load_scene(sys.argv[7], overrides, out)
 sim = simulation.Simulation(scene)
 frames = None
@@ -83,12 +91,26 @@ def _run_measured(argv, cwd=None) -> tuple[str, str, float]:
     return done.stdout, done.stderr, int(peak.split("=")[1]) / 1024.0
 
 
+def steps_for(n: int) -> int:
+    """Steps of a run of N particles: 10,000 (settle.md), fewer for the scale variants."""
+    return min(STEPS, MOST_PARTICLE_STEPS // n)
+
+
+def box_height(n: int) -> float | None:
+    """The box and fill height (m) N particles need when the scene file's 1 m is too
+    short (the lattice's layers plus 1 cm, as make_lattice.py's zhi), else None."""
+    layers = -(-n // LAYER_SITES)
+    top = FIRST_CENTRE + SPACING * layers + 0.01
+    return top if top > 1.0 else None
+
+
 def run_minidem(n: int, jitter: float, threads: int | str, steps: int = STEPS, vtk: bool = False,
                 out: Path | None = None) -> dict:
     """``threads``: run.threads, or e.g. "2pinned": two threads for every chunk."""
     out = out or Path(tempfile.gettempdir()) / "minidem-bench-settle"
+    height = box_height(n)
     stdout, _, rss = _run_measured([sys.executable, "-c", _CHILD, n, repr(jitter), threads, steps,
-                                    "true" if vtk else "false", out, SETTLE])
+                                    "true" if vtk else "false", out, SETTLE, "-" if height is None else repr(height)])
     record = json.loads(stdout.strip().splitlines()[-1])
     record["peak_rss_mib"] = rss
     record["rate"] = n * record["steps"] / record["wall_s"]
@@ -134,7 +156,7 @@ def import_baseline() -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def measure(repeats: int = 3, sizes=(2_000, 20_000), variants=("lattice", "jitter"), thread_counts=(1, 2),
+def measure(repeats: int = 3, sizes=SIZES, variants=("lattice", "jitter"), thread_counts=(1, 2),
             echo=print) -> dict:
     have_liggghts = liggghts_executable() is not None and (SHARED_BENCH / "in.settle").exists()
     results = {"cases": {}, "liggghts": have_liggghts}
@@ -153,14 +175,15 @@ def measure(repeats: int = 3, sizes=(2_000, 20_000), variants=("lattice", "jitte
                 pinned = n >= simulation.PARALLEL_MIN_PARTICLES
                 case = {"liggghts": [], **{f"minidem_{t}": [] for t in thread_counts},
                         **({"minidem_2_pinned": []} if pinned else {})}
+                steps = steps_for(n)
                 for repeat in range(repeats):
                     # interleaved, so a change in the machine's load hits every code alike
                     if have_liggghts:
-                        case["liggghts"].append(run_liggghts(data))
+                        case["liggghts"].append(run_liggghts(data, steps))
                     for t in thread_counts:
-                        case[f"minidem_{t}"].append(run_minidem(n, jitter, t))
+                        case[f"minidem_{t}"].append(run_minidem(n, jitter, t, steps))
                     if pinned:
-                        case["minidem_2_pinned"].append(run_minidem(n, jitter, "2pinned"))
+                        case["minidem_2_pinned"].append(run_minidem(n, jitter, "2pinned", steps))
                     echo(f"bench: {variant} N={n} repeat {repeat + 1}/{repeats}: "
                          + ", ".join(f"{k} {v[-1]['rate']:.3g}/s" for k, v in case.items() if v))
                 results["cases"][(variant, n)] = case
@@ -212,6 +235,18 @@ def memory_growth(cases) -> str:
             "one copy of the last good state; the list entries grow as the pile packs): " + "; ".join(parts) + ".")
 
 
+def per_particle_memory(cases, fixed_mib) -> str:
+    """Bytes a particle at each N (issue 15, target 3): (peak - fixed cost) / N, minidem
+    one thread, the fixed cost being a fresh interpreter's peak after numba's first
+    compiled call. LIGGGHTS' per-particle cost is the growth of its peak (memory_growth)."""
+    parts = []
+    for (variant, n), case in sorted(cases.items(), key=lambda item: (item[0][0], item[0][1])):
+        mine = (_median(case["minidem_1"], "peak_rss_mib") - fixed_mib) * 1024 * 1024 / n
+        parts.append(f"{variant} {n:,}: {mine:.0f}")
+    return ("Bytes a particle, minidem one thread, (peak - the fixed cost of the first compiled call) / N: "
+            + "; ".join(parts) + ".")
+
+
 def section(results: dict, command: str, stamp) -> str:
     cases = results["cases"]
     load_start, load_end = results["load"]
@@ -224,9 +259,10 @@ def section(results: dict, command: str, stamp) -> str:
         "ratios, measured interleaved, are the useful part).",
         "",
         "Scene: `scenarios/bench/settle.toml` = ../shared/bench/settle.md (Hertz + Mindlin no-slip with history, "
-        "e = 0.5, mu = 0.5, box of 5 planes, dt = 2e-5 s, 10,000 steps, skin 0.5 mm; start positions identical "
+        "e = 0.5, mu = 0.5, box of 5 planes, dt = 2e-5 s, 10,000 steps (N above 200,000: "
+        f"{MOST_PARTICLE_STEPS:.0e} particle-steps a run, e.g. 2,000 steps at 1,000,000), skin 0.5 mm; start positions identical "
         "to the LIGGGHTS generator's). Each run is a fresh process; time = the step loop (set-up excluded; "
-        "LIGGGHTS: its 'Loop time'); particle-steps/s = N x 10,000 / time; medians of "
+        "LIGGGHTS: its 'Loop time'); particle-steps/s = N x steps / time; medians of "
         f"{len(next(iter(cases.values()))['minidem_1'])} runs; peak memory = the process's ru_maxrss. "
         "LIGGGHTS 3.8.0 (Debian package), `liggghts -in bench/liggghts/in.settle` (hertz, tangential "
         "history), one core. minidem with run.threads = 2 runs scenes below 5,000 particles on one thread, "
@@ -272,6 +308,8 @@ def section(results: dict, command: str, stamp) -> str:
         "generation contexts and LLVM). That fixed cost is already about three times LIGGGHTS' whole "
         "process: the <= LIGGGHTS target is not reachable with numba loaded. " + memory_growth(cases),
         "",
+        per_particle_memory(cases, base.get("first compiled call", float("nan"))),
+        "",
     ]
     scaling = results["neighbours"]
     lines += ["Neighbour-list build (`minidem.geometry.neighbours.build_pairs`, random packings at a fixed volume "
@@ -286,5 +324,5 @@ def section(results: dict, command: str, stamp) -> str:
     return "\n".join(lines)
 
 
-def run(repeats: int, command: str, stamp, echo=print) -> str:
-    return section(measure(repeats=repeats, echo=echo), command, stamp)
+def run(repeats: int, command: str, stamp, echo=print, sizes=SIZES) -> str:
+    return section(measure(repeats=repeats, sizes=sizes, echo=echo), command, stamp)

@@ -20,6 +20,7 @@ from minidem.contact.builtin_laws.common import (
     FRICTION,
     RESTITUTION,
     coulomb_cap,
+    damped_normal_force,
     hertz_damping_factor,
     incremental_spring,
     norm3,
@@ -69,15 +70,17 @@ def hertz_normal_force(constants, effective_radius, effective_mass, normal_overl
     """Eq 15, K d^1.5 with K = 4/3 E* sqrt(R*), plus the Tsuji-type dashpot
     alpha sqrt(m* K) d^(1/4) d'.
 
-    The force is not clipped at zero: the contact ends when the overlap does, which is
-    what the restitution mapping assumes. Friction uses max(Fn, 0).
+    With the dashpot the force is clipped at zero (damped_normal_force: a non-adhesive
+    contact never pulls), which is what the restitution mapping assumes. Without it
+    (e = 1) the force is the elastic one, unchanged.
     """
     stiffness = constants[HERTZ_MODULUS] * math.sqrt(effective_radius)
     root = math.sqrt(normal_overlap)
     elastic = stiffness * normal_overlap * root
     if constants[DAMPING] == 0.0:
         return elastic
-    return elastic + constants[DAMPING] * math.sqrt(effective_mass * stiffness * root) * normal_velocity
+    return damped_normal_force(
+        elastic, constants[DAMPING] * math.sqrt(effective_mass * stiffness * root) * normal_velocity)
 
 
 # ---------------------------------------------------------------------------------
@@ -95,6 +98,8 @@ FT, AXIS, FT_STAR, FT_2STAR, MODE, SLIDING = 0, 3, 6, 7, 8, 9
 DISPLACEMENT, SPECIAL, ANCHOR_DISPLACEMENT, ANCHOR_FORCE, ANCHOR_NORMAL, DEFICIT = 10, 13, 14, 17, 20, 21
 # the previous step's tangential increment: where the displacement reverses inside a step
 PREVIOUS_INCREMENT = 22
+# the previous step's normal force (with a dashpot; it depends on the velocity)
+PREVIOUS_NORMAL_FORCE = 25
 VIRGIN, LOADING, UNLOADING, RELOADING = 0.0, 1.0, 2.0, 3.0
 # Readings of the paper's eq 24 ("theta = 1 in eq 21 UNTIL 8 G* a [.] > [.] Fn", the
 # symbols lost in the extraction). theta = 1 whenever eq 19 holds (dFn > 0 and
@@ -254,11 +259,21 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
     mu = constants[MU]
     if mu == 0.0:
         return normal_force, 0.0, 0.0, 0.0
-    # Mindlin-Deresiewicz's N is the elastic normal force: the dashpot does not widen
-    # the contact area.
-    stiffness = constants[HERTZ_MODULUS] * math.sqrt(effective_radius)
-    fn = stiffness * normal_overlap ** 1.5
-    fn_old = stiffness * max(normal_overlap - normal_overlap_increment, 0.0) ** 1.5
+    # Mindlin-Deresiewicz's N, in theta (eq 22), dFn (eqs 19, 21, 23) and the Coulomb cap,
+    # is one force: the normal force the contact transmits, which Coulomb's law refers
+    # to. With a dashpot that is the total, clipped force: with the elastic one in theta
+    # and the total one in the cap, a sliding contact at e = 0.5 carried 0.82 of mu times
+    # the normal impulse (issue 16). Its previous value is kept, as the dashpot's part
+    # depends on the velocity. Without a dashpot (e = 1) the two are the elastic force,
+    # computed as before.
+    if constants[DAMPING] == 0.0:
+        stiffness = constants[HERTZ_MODULUS] * math.sqrt(effective_radius)
+        fn = stiffness * normal_overlap ** 1.5
+        fn_old = stiffness * max(normal_overlap - normal_overlap_increment, 0.0) ** 1.5
+    else:
+        fn = normal_force
+        fn_old = history[PREVIOUS_NORMAL_FORCE]
+        history[PREVIOUS_NORMAL_FORCE] = fn
     dfn = fn - fn_old
     # 8 G* a averaged over the step (the overlap linear in it): with the end-of-step
     # radius the update is only first order in dt, and with the mid-step radius the
@@ -554,10 +569,11 @@ HMD = _law(
         HistorySlot("special_start_displacement", "total displacement where the special state began (m)",
                     vector=True),
         HistorySlot("special_start_force", "tangential force where the special state began (N)", vector=True),
-        HistorySlot("special_start_normal_force", "elastic normal force where the special state began (N)"),
+        HistorySlot("special_start_normal_force", "normal force where the special state began (N)"),
         HistorySlot("special_deficit", "displacement owed before the loading curve is met (m; special_case 4)"),
         HistorySlot("previous_increment", "the previous step's tangential displacement increment (m)",
                     vector=True),
+        HistorySlot("previous_normal_force", "the previous step's normal force, with a dashpot (N)"),
     ),
     "Thornton, Cummins & Cleary (2011) section 3.1; Thornton & Yin (1991)",
     aliases=("hertz_mindlin_deresiewicz",),

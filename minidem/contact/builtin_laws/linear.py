@@ -4,7 +4,13 @@ import math
 
 import numba
 
-from minidem.contact.builtin_laws.common import FRICTION, RESTITUTION, incremental_spring, linear_damping_ratio
+from minidem.contact.builtin_laws.common import (
+    FRICTION,
+    RESTITUTION,
+    damped_normal_force,
+    incremental_spring,
+    linear_damping_ratio,
+)
 from minidem.contact.laws import ContactLaw, HistorySlot, Parameter, hertz_contact_time
 
 # indices into the constants row (order of LS.constants)
@@ -66,10 +72,10 @@ CALIBRATION_SPEED = Parameter("calibration_speed", None, "m/s", "normal speed fo
 @numba.njit(cache=True)
 def linear_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
                  normal_velocity, tangential_increment, tangential_velocity, history):
-    # linear dashpot 2 zeta sqrt(m* kn): gives the requested restitution exactly when
-    # the contact ends at zero overlap (force not clipped)
+    # linear dashpot 2 zeta sqrt(m* kn), the force clipped at zero (never tensile): zeta
+    # is mapped from e for that clipped force (common.linear_damping_ratio)
     damping = 2.0 * constants[ZETA] * math.sqrt(effective_mass * constants[KN])
-    normal_force = constants[KN] * normal_overlap + damping * normal_velocity
+    normal_force = damped_normal_force(constants[KN] * normal_overlap, damping * normal_velocity)
     # eq 26: incremental tangential spring, truncated at the Coulomb limit
     ftx, fty, ftz = incremental_spring(history, constants[KT], tangential_increment,
                                        constants[MU] * max(normal_force, 0.0))
