@@ -392,6 +392,39 @@ def test_second_pass_is_shared_evenly_between_the_threads():
     assert np.array_equal(first_partner[[6, 7, 8, 13]], [2, 2, 2, 9])  # the cross-block ones untouched
 
 
+def test_a_scene_below_the_thread_threshold_gets_the_serial_untracked_kernel():
+    """A scene too small for a second thread (PARALLEL_MIN_PARTICLES) runs on one thread
+    whatever run.threads says, so it is given the serial kernel, without numba's
+    parallel pipeline (a third of the CPU time of the first run of settle.toml), and
+    without contact statistics (TRACK: the same output as the parallel kernel). The
+    result is the same bits as the parallel kernel's on one thread: the same operations
+    in the same order, only compiled differently."""
+    base = DEEP_PILE[1:] + ["fill.0.count=100", "run.end_time=0.01", "output.vtk=false", "run.threads=2"]
+    scene = scenario.load_scene("scenarios/bench/settle.toml", base)
+    assert simulation.PARALLEL_ABOVE < scene.n_particles < simulation.PARALLEL_MIN_PARTICLES
+    serial = simulation.Simulation(scene)
+    assert serial.parallel and not serial.threaded  # the multi-particle path, serial loops
+    assert serial.kernel.PARALLEL is False and serial.kernel.TRACK is False
+    threaded = simulation.Simulation(scenario.load_scene("scenarios/bench/settle.toml", base),
+                                     kernel_flags={"PARALLEL": True})
+    assert threaded.kernel.PARALLEL is True and threaded.kernel.TRACK is False
+    results = [sim.run() for sim in (serial, threaded)]
+    assert results[0].contacts > 50 and results[0].threads == results[1].threads == 1
+    assert not results[0].contact_statistics and not results[1].contact_statistics
+    for name in ("position", "velocity", "angular_velocity"):
+        assert np.array_equal(getattr(results[0], name), getattr(results[1], name))
+
+
+def test_one_thread_is_one_block_of_all_particles():
+    # the blocks advance is given on one thread, chosen without compiled code; on two,
+    # thread_blocks balances the work (test_same_bits_on_one_and_two_threads)
+    from minidem.engine import blocks
+
+    bounds, first_partner = blocks.blocks(1, None, None, 7)
+    assert bounds.tolist() == [0, 7] and first_partner.tolist() == list(range(7))
+    assert bounds.dtype == first_partner.dtype == np.int64
+
+
 def test_loop_threads_keep_the_faster_count():
     # two threads allowed; one thread is measured faster (a loaded machine): the run
     # switches to it at the first probe, and probes two threads again later, ever more

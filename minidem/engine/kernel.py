@@ -19,8 +19,11 @@ removed by the compiler, so a single impact pays nothing for pairs or meshes):
     PAIRS      sphere-sphere contacts through the Verlet list (more than one particle)
     CYLINDERS  finite cylinder walls
     MESHES     triangle-mesh walls
-    PARALLEL   particle loops run with prange; small scenes run serial and TRACK
-               contact statistics (first touch, separation, peaks) and the probe
+    PARALLEL   particle loops run with prange (scenes large enough for a second
+               thread to pay, simulation.PARALLEL_MIN_PARTICLES); the others run serial
+    TRACK      contact statistics (first touch, separation, peaks) and the probe are
+               recorded (small scenes and runs to separation; serial kernels only: they
+               are written by whichever particle has the contact, race-free only there)
     OPENING_KICK  the integrator (minidem.engine.integrate): the fraction of the velocity
                update made before the drift, 0.5 velocity Verlet, 1 symplectic Euler
 
@@ -42,11 +45,11 @@ of consecutive particles per thread:
 Most particles are finished inside compute_forces, as soon as their own contacts are
 done, while their data are still in cache: legal for p when every row i < p that lists
 it (holds its reactions, reads its position) is in p's own block, done by then
-(``first_partner``). On one thread that is every particle and the step is one pass; on
-two, finish_kick_drift is left with the particles that have a partner in the block
+(``first_partner``, see ``minidem.engine.blocks``). On one thread that is every particle
+and the step is one pass; on two, finish_kick_drift is left with the particles that have a partner in the block
 before theirs (about one layer of a pile), and each block leaves as many in all, taking
 its last particles to make up the number, so no thread waits alone on that pass
-(``defer_finishing``).
+(``minidem.engine.blocks.defer_finishing``).
 
 Every sum is taken in an order fixed by the neighbour list, never by the thread
 schedule, so a run is bit-for-bit the same on any number of threads, and no two
@@ -71,6 +74,9 @@ from minidem.geometry.primitives import (
     triangle_closest_point,
 )
 from minidem.engine.integrate import drift, kick
+# the blocks of particles per thread are chosen outside the kernel (advance's bounds and
+# first_partner); named here too, where the kernel's two passes are described
+from minidem.engine.blocks import defer_finishing  # noqa: F401
 
 # >>> specialisation block (rewritten by minidem.engine.simulation.compile_kernel)
 from minidem.contact.builtin_laws.linear import linear_force as law_force  # noqa: E402
@@ -82,13 +88,11 @@ PAIRS = True
 CYLINDERS = True
 MESHES = True
 PARALLEL = False
+TRACK = True
 VECTOR_OFFSETS = (0,)
 OPENING_KICK = 0.5
 # <<< specialisation block
 
-# contact statistics and the probe are written by whichever particle has the contact:
-# only race-free in a serial loop
-TRACK = not PARALLEL
 particle_range = numba.prange if PARALLEL else range
 # Serial kernels inline the per-step functions into ``advance`` (numba IR inlining): one
 # function is optimised and compiled once. Kept separate, each entry point is compiled
@@ -285,7 +289,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
     momentum is conserved to round-off.
 
     Each particle p none of whose partners comes before ``first`` (first_partner[p] >=
-    first, see ``thread_blocks``; on one thread every particle) is finished
+    first, see ``minidem.engine.blocks``; on one thread every particle) is finished
     (``finish_range``) right after its own contacts. That is legal in ascending order:
     p's reactions come from the rows i < p, all in this block and done by then, and
     only rows i < p read p's position and velocity. The operations are the same, in
@@ -570,87 +574,6 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
     return moved_too_far
 
 
-# Relative cost of the force pass per particle (gravity, the plane checks), per listed
-# pair and per touching contact (pair or wall), for the blocks of compute_forces. From
-# the settle scene at N = 20,000, one thread: ~20 ns a particle, ~60 ns a touching contact,
-# a few ns a listed pair apart.
-PARTICLE_COST, LISTED_COST, CONTACT_COST = 4, 1, 12
-
-
-@numba.njit(cache=True)
-def thread_blocks(threads, planes, pairs, n):
-    """(bounds of ``threads`` blocks of consecutive particles with equal estimated work
-    in the force pass, counting the contacts touching at the last step; the first
-    partner of each particle: the smallest i whose row lists it, itself if none).
-
-    Equal particle counts were unequal work: the settle scene's lower layers (the low
-    indices) touch first and most, e.g. 18,401 against 10,723 touching pairs in the two
-    halves of N = 20,000 at step 3,000 (jitter). Which thread computes a particle does
-    not change a bit of the result."""
-    offsets, neighbours = pairs[0], pairs[1]
-    first_partner = np.arange(n)
-    for i in range(n):
-        for e in range(offsets[i], offsets[i + 1]):
-            first_partner[neighbours[e]] = min(first_partner[neighbours[e]], i)
-    if PARALLEL:  # compile-time: serial kernels do not compile the balancing
-        if threads > 1:
-            bounds = balanced_bounds(threads, planes, pairs, n)
-            defer_finishing(bounds, first_partner)
-            return bounds, first_partner
-    return np.array([0, n]), first_partner
-
-
-@numba.njit(cache=True)
-def defer_finishing(bounds, first_partner):
-    """Even out the second pass. Block b must leave to finish_kick_drift its particles
-    with a partner in an earlier block (none in the first block, about a layer of a pile
-    in the others): the other threads would wait for those at the second join. Each
-    block therefore also leaves its last particles, as many as the block with the most
-    such particles leaves, so every thread finishes as many in the second pass and as
-    many fewer in the first (the bounds balance the total work). Marked by
-    first_partner = -1 (earlier than any block): which pass finishes a particle does not
-    change a bit of the result (its reactions are all stored by then)."""
-    blocks = bounds.shape[0] - 1
-    left = np.zeros(blocks, dtype=np.int64)
-    for block in range(blocks):
-        for p in range(bounds[block], bounds[block + 1]):
-            left[block] += first_partner[p] < bounds[block]
-    most = left.max()
-    for block in range(blocks):
-        p = bounds[block + 1] - 1
-        while left[block] < most and p >= bounds[block]:
-            if first_partner[p] >= bounds[block]:
-                first_partner[p] = -1
-                left[block] += 1
-            p -= 1
-
-
-@numba.njit(cache=True)
-def balanced_bounds(threads, planes, pairs, n):
-    """Block bounds of thread_blocks for more than one thread."""
-    offsets, pair_overlap, wall_overlap = pairs[0], pairs[3], planes[4]
-    work_before = np.empty(n + 1, dtype=np.int64)  # estimated work of particles 0..i-1
-    work_before[0] = 0
-    for i in range(n):
-        work = PARTICLE_COST + LISTED_COST * (offsets[i + 1] - offsets[i])
-        for e in range(offsets[i], offsets[i + 1]):
-            work += CONTACT_COST * (pair_overlap[e] > 0.0)
-        for w in range(wall_overlap.shape[1]):
-            work += CONTACT_COST * (wall_overlap[i, w] > 0.0)
-        work_before[i + 1] = work_before[i] + work
-    bounds = np.empty(threads + 1, dtype=np.int64)
-    i = 0
-    for block in range(threads + 1):
-        # the first particle whose preceding work reaches the block's share (a loop, not
-        # np.searchsorted: the same index, for a fraction of the compile time)
-        share = block * work_before[n] // threads
-        while i < n and work_before[i] < share:
-            i += 1
-        bounds[block] = i
-    bounds[threads] = n
-    return bounds
-
-
 @numba.njit(cache=True, parallel=PARALLEL, inline=INLINE)
 def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking, threads, drift_on,
                    position_at_build, half_skin_squared, bounds, first_partner):
@@ -660,7 +583,7 @@ def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt
     others are left to ``finish_kick_drift``.
 
     Parallel: one block of consecutive particles per thread (``bounds``, see
-    ``thread_blocks``). A call of force_range
+    ``minidem.engine.blocks.thread_blocks``). A call of force_range
     unpacks the argument tuples, an atomic reference-count update per array on headers
     the threads share, so it is made once per thread and step (blocks of 256 particles
     cost 48 of these per block, and the two threads' cache lines bounced between the
@@ -676,7 +599,10 @@ def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt
                 active += block_active
                 moved_too_far += block_moved
             return active, moved_too_far
-    return force_range(0, bounds[1], particles, law, planes, cylinders, meshes, pairs, gravity, dt, time,
+    # bounds[0] (= 0), not the literal 0: numba would compile force_range a second time for a
+    # literal first argument, beside the prange loop's (11 of the 44 s of CPU of a first run
+    # of scenarios/settle.toml)
+    return force_range(bounds[0], bounds[1], particles, law, planes, cylinders, meshes, pairs, gravity, dt, time,
                        tracking, first_partner, drift_on, position_at_build, half_skin_squared)
 
 
@@ -722,7 +648,8 @@ def kick_drift(particles, dt, position_at_build, half_skin_squared):
 
 @numba.njit(cache=True, error_model="numpy")
 def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_at_build, half_skin_squared,
-            dt, start_time, start_step, n_steps, resume, stop_at_separation, trace, tracking, threads):
+            dt, start_time, start_step, n_steps, resume, stop_at_separation, trace, tracking, threads, bounds,
+            first_partner):
     """Advance up to n_steps; return (steps completed, neighbour list needs a rebuild).
 
     Returns early
@@ -735,7 +662,10 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
     ``trace`` (rows = steps, may have 0 rows) receives the probed contact each step.
     ``threads``: how many threads run the particle loops, at most numba's current
     number (numba.set_num_threads; not read here: numba.get_num_threads() in compiled
-    code makes it uncacheable).
+    code makes it uncacheable). ``bounds``, ``first_partner``: its blocks of particles
+    (``minidem.engine.blocks.blocks``, for ``threads`` threads; one block, all particles,
+    for a serial kernel): chosen outside the kernel, which therefore does not compile
+    them anew for every law and scene shape.
     Times are start_time + k dt, not a running sum, so long runs do not drift.
 
     Two parallel passes a step: forces, then reactions + closing half kick fused with
@@ -749,7 +679,6 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
     probe_wall, probe, stats, status = tracking
     if not PARALLEL:
         threads = 1
-    bounds, first_partner = thread_blocks(threads, planes, pairs, position.shape[0])
     drifted = resume  # the opening half kick and drift of the current step are done
     for step in range(n_steps):
         if not drifted:

@@ -31,7 +31,7 @@ import numpy as np
 
 from minidem import __version__
 from minidem.contact import laws
-from minidem.engine import integrate, kernel
+from minidem.engine import blocks, compile_speed, integrate, kernel, warmup
 from minidem.errors import MinidemError
 from minidem.geometry import neighbours, primitives
 from minidem.scene import derived
@@ -45,6 +45,9 @@ from minidem.scene.scenario import Scene, ScenarioError
 # the explicit blocks of the kernel: results are the same bits on any layer.
 if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
     numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
+# numba's inliner copies each inlined function's IR once instead of once per basic block
+# (the same machine code; a third less CPU in a first run: minidem.engine.compile_speed)
+compile_speed.install()
 
 _TEMPLATE = Path(kernel.__file__)
 _BLOCK_START = "# >>> specialisation block"
@@ -64,7 +67,7 @@ PARALLEL_ABOVE = 16
 # (The run.threads text in minidem/scene/scenario.py names this number.)
 PARALLEL_MIN_PARTICLES = 5000
 # scene-shape flags of the kernel specialisation block, in order
-KERNEL_FLAGS = ("SPIN", "PAIRS", "CYLINDERS", "MESHES", "PARALLEL")
+KERNEL_FLAGS = ("SPIN", "PAIRS", "CYLINDERS", "MESHES", "PARALLEL", "TRACK")
 # Automatic time step (docs/time-step.md): the smallest of the accuracy step (contact
 # time / steps_per_contact) and these fractions of the Rayleigh time and of the
 # integrator's stability limit
@@ -238,11 +241,14 @@ def _engine_hash() -> str:
 
 
 def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, cylinders: bool = False,
-                   meshes: bool = False, parallel: bool = False, integrator: str = "velocity_verlet"):
+                   meshes: bool = False, parallel: bool = False, track: bool = True,
+                   integrator: str = "velocity_verlet"):
     """Return the kernel module specialised for ``entry.law``, a scene shape and an
     integrator (compiled lazily, cached on disk). Integrators with the same kick split
     (velocity Verlet and analytic flight) share one kernel."""
-    flags = dict(zip(KERNEL_FLAGS, (bool(spin), bool(pairs), bool(cylinders), bool(meshes), bool(parallel))))
+    track = track and not parallel  # a parallel loop cannot record contact statistics
+    flags = dict(zip(KERNEL_FLAGS, (bool(spin), bool(pairs), bool(cylinders), bool(meshes), bool(parallel),
+                                    bool(track))))
     law = entry.law
     # a law with rolling or twisting parts takes the relative spin and returns a couple
     flags["COUPLES"] = bool(law.couples)
@@ -555,7 +561,15 @@ class Simulation:
         self.spin = any(self.law.is_frictional(params)
                         for params in (scene.law_parameters, *scene.pair_parameters.values()))
         self.pairs = scene.n_particles > 1
+        # the multi-particle path, without contact statistics (only the serial loop of small
+        # scenes and of runs to separation records them: kernel flag TRACK)
         self.parallel = scene.n_particles > PARALLEL_ABOVE and scene.stop != "separation"
+        # its particle loops threaded (prange) only where a second thread can run them: a
+        # scene below PARALLEL_MIN_PARTICLES runs on one thread whatever run.threads says,
+        # and the serial kernel does the same operations in the same order (the same bits)
+        # without numba's parallel pipeline, 33 of the 44 s of CPU of the first run of
+        # scenarios/settle.toml (kernel flag PARALLEL)
+        self.threaded = self.parallel and scene.n_particles >= PARALLEL_MIN_PARTICLES
         self.skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
         # what the values imply (constants, contact time, dt, step count), checked before
         # the kernel is compiled: out of float64 range is bad input naming the keys
@@ -572,11 +586,13 @@ class Simulation:
         self.spin = forced.get("SPIN", self.spin)
         self.pairs = forced.get("PAIRS", self.pairs)
         self.parallel = forced.get("PARALLEL", self.parallel)
+        self.threaded = forced.get("PARALLEL", self.threaded)
         with _notice_if_slow(notify, f"compiling (or loading from the cache) the kernel of law '{self.law.name}' "
-                             "for this scene: a first run of a law and scene shape takes a minute or so"):
+                             "for this scene"):
             self.kernel = compile_kernel(self.entry, self.spin, self.pairs,
                                          forced.get("CYLINDERS", scene.walls.cylinder_base.shape[0] > 0),
-                                         forced.get("MESHES", scene.walls.triangles.shape[0] > 0), self.parallel,
+                                         forced.get("MESHES", scene.walls.triangles.shape[0] > 0), self.threaded,
+                                         not self.parallel,
                                          scene.integrator)
 
     # -- constants -------------------------------------------------------------
@@ -1020,16 +1036,36 @@ class _RunLoop:
     def call(self, start_step, n_steps, completing, trace, threads=None, dt=None, stop_at_separation=None):
         """``n_steps`` compiled steps from ``start_step``; returns (steps taken, whether the
         neighbour list must be rebuilt first)."""
-        state, sim = self.state, self.sim
         threads = threads or self.loop_threads.current
         # every parallel loop of the chunk (the opening kick_drift too) on that many
         numba.set_num_threads(threads)
-        return self.kernel.advance(
-            state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
-            self.scene.gravity, state.position_at_build, self.half_skin_squared, sim.dt if dt is None else dt,
-            self.start_time, start_step, n_steps, completing,
-            self.stop_at_separation if stop_at_separation is None else stop_at_separation, trace, self.tracking,
-            threads)
+        return self.kernel.advance(*self.arguments(start_step, n_steps, completing, trace, threads, dt,
+                                                   stop_at_separation))
+
+    def arguments(self, start_step, n_steps, completing, trace, threads, dt=None, stop_at_separation=None,
+                  one_block=False):
+        """The arguments of the kernel's ``advance`` (``one_block``: the blocks of one
+        thread, whatever ``threads`` says: for their types alone)."""
+        state, sim = self.state, self.sim
+        # a serial kernel runs its particle loops on one thread, whatever it is told
+        bounds, first_partner = blocks.blocks(threads if sim.threaded and not one_block else 1, state.planes,
+                                              state.pairs, state.position.shape[0])
+        return (state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
+                self.scene.gravity, state.position_at_build, self.half_skin_squared, sim.dt if dt is None else dt,
+                self.start_time, start_step, n_steps, completing,
+                self.stop_at_separation if stop_at_separation is None else stop_at_separation, trace,
+                self.tracking, threads, bounds, first_partner)
+
+    def compile_kernel(self):
+        """Compile (or load from the cache) the kernel's ``advance`` for the types of its
+        arguments, before the neighbour lists exist (their arrays' types do not change
+        when they are built): the helper (``minidem.engine.warmup``) meanwhile compiles
+        the neighbour search the first list needs."""
+        advance = self.kernel.advance
+        if hasattr(advance, "compile"):  # a test may put a plain function there
+            args = self.arguments(0, 1, True, self.no_trace, self.loop_threads.current, dt=0.0,
+                                  stop_at_separation=False, one_block=True)
+            advance.compile(tuple(advance.typeof_pyval(arg) for arg in args))
 
     def start(self):
         """The state at the first step: fresh (initial forces) or the checkpoint resumed."""
@@ -1044,14 +1080,20 @@ class _RunLoop:
                 self.trace_chunks.append(arrays["trace"])
             if self.saves_series:
                 self.on_frame.restore(meta["frames_series"], loop["frames"])
-        elif sim.pairs or state.meshes[0].shape[0]:
-            sim.rebuild(state)
+        meshes = state.meshes[0].shape[0] > 0
+        # on a fresh install the engine's shared functions compile in a helper process
+        # beside the kernel (nothing is started when they are cached)
+        helper = warmup.start(sim.pairs, meshes)
         try:
-            # the one compilation of this kernel (numba compiles on the first call), reported
-            # against the law that caused it; a user waiting for it is told what it is
+            # the one compilation of this kernel, reported against the law that caused it; a
+            # user waiting for it is told what it is
             compiling = _notice_if_slow(sim.notify, f"compiling the kernel of law '{sim.law.name}' for this scene "
                                         f"shape; it is cached in {cache_directory()} for later runs")
             with compiling:
+                self.compile_kernel()
+                helper.wait()
+                if self.resume_from is None and (sim.pairs or meshes):
+                    sim.rebuild(state)
                 self.first_call()
         except numba.core.errors.NumbaError as exc:
             raise laws.LawError(f"law '{sim.law.name}' from plugin '{sim.entry.plugin}' "

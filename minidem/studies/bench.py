@@ -609,7 +609,7 @@ def run(quick: bool = False, docs: Path = DOCS, sections=ALL_SECTIONS, echo=prin
         from minidem.studies import bench_compile
 
         echo("bench: compile time of each shipped law and combination (fresh processes)")
-        texts["compile"] = bench_compile.run(command, stamp, echo)
+        texts["compile"] = bench_compile.run(command, stamp, echo, rounds=1 if quick else 3)
     if "sweep-timing" in sections:
         echo("bench: paper sweep, cold and warm (fresh processes)")
         timing = sweep_timing(settings["cold_repeats"], settings["warm_repeats"], settings["sweep_workers"])

@@ -8,17 +8,30 @@ cache already holding the engine's shared compiled functions (filled by one run 
 the warm time is a second ``Simulation(scene).run()`` in the same process (the kernel
 loaded). Scene: 20 spheres falling onto a floor plane, the multi-particle (parallel)
 kernel variant, 10 steps.
+
+It also measures what a new user waits for (issue 15, target 5): the first
+``minidem run`` of every shipped scene (``scenarios/*.toml``) as a whole process, with
+empty caches (``MINIDEM_CACHE_DIR`` and ``NUMBA_CACHE_DIR`` pointing to new, empty
+folders), then a second run on the caches the first one filled. Wall and CPU time
+(user + system, of the child process) are both reported, medians of the rounds: on a
+machine shared with other jobs the wall time is inflated more than the CPU time.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import resource
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
+
+# the shipped scenes a newcomer runs first (README, docs/scenarios.md)
+SCENES = Path(__file__).resolve().parents[2] / "scenarios"
 
 # (name shown, the [contact] table): the paper's laws, the parts forms of two of them,
 # every shipped rolling and twisting part with hertz + tsuji + mindlin, and the
@@ -94,6 +107,64 @@ def measure(combinations=COMBINATIONS, echo=print) -> list[dict]:
     return rows
 
 
+def timed_run(scene: Path, cache: Path, out: Path) -> dict:
+    """``minidem run scene`` in a fresh process on the caches in ``cache``: wall and CPU
+    seconds (user + system of the child), from process start to exit."""
+    env = dict(os.environ, MINIDEM_CACHE_DIR=str(cache / "minidem"), NUMBA_CACHE_DIR=str(cache / "numba"))
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    started = time.perf_counter()
+    done = subprocess.run([sys.executable, "-c", "import sys; from minidem.cli import main; sys.exit(main())",
+                           "run", str(scene), "--out", str(out), "--quiet"],
+                          env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - started
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if done.returncode != 0:
+        raise RuntimeError(f"compile bench: minidem run {scene} failed:\n{(done.stdout + done.stderr)[-2000:]}")
+    return {"wall_s": wall, "cpu_s": (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)}
+
+
+def measure_scenes(rounds: int, scenes=None, echo=print) -> list[dict]:
+    """Cold (empty caches) and warm first runs of each scene, ``rounds`` times, interleaved
+    scene by scene; medians."""
+    scenes = sorted(SCENES.glob("*.toml")) if scenes is None else scenes
+    runs = {scene: {"cold": [], "warm": []} for scene in scenes}
+    for round_ in range(rounds):
+        for scene in scenes:
+            with tempfile.TemporaryDirectory(prefix="minidem-bench-cold-") as folder:
+                cache = Path(folder) / "cache"  # empty: nothing compiled yet
+                cold = timed_run(scene, cache, Path(folder) / "cold")
+                warm = timed_run(scene, cache, Path(folder) / "warm")
+            runs[scene]["cold"].append(cold)
+            runs[scene]["warm"].append(warm)
+            echo(f"bench: first run {scene.name} (round {round_ + 1}/{rounds}): cold {cold['wall_s']:.1f} s "
+                 f"({cold['cpu_s']:.1f} s CPU), warm {warm['wall_s']:.1f} s ({warm['cpu_s']:.1f} s CPU)")
+    rows = []
+    for scene, timing in runs.items():
+        row = {"scene": f"scenarios/{scene.name}", "rounds": rounds}
+        for kind in ("cold", "warm"):
+            for what in ("wall_s", "cpu_s"):
+                row[f"{kind}_{what}"] = statistics.median(run[what] for run in timing[kind])
+        rows.append(row)
+    return rows
+
+
+def section_scenes(rows: list[dict]) -> str:
+    lines = ["### First run of each shipped scene", "",
+             "`minidem run scenarios/NAME.toml` as a whole process (interpreter start to exit, output "
+             "written), on a fresh install's empty caches (`MINIDEM_CACHE_DIR` and `NUMBA_CACHE_DIR` new, "
+             "empty folders): every kernel and engine function the scene needs is compiled. 'Warm' is the "
+             "same command again on the caches the first run filled (the run itself, loading included). "
+             f"Medians of {rows[0]['rounds'] if rows else 0} round(s), scenes interleaved; CPU = user + "
+             "system time of the process and of the helper process that compiles the engine's shared "
+             "functions beside the kernel on a fresh install (minidem/engine/warmup.py). The difference "
+             "cold - warm is what compiling costs.",
+             "", "| scene | cold wall s | cold CPU s | warm wall s | warm CPU s |", "|---|---|---|---|---|"]
+    for row in rows:
+        lines.append(f"| `{row['scene']}` | {row['cold_wall_s']:.1f} | {row['cold_cpu_s']:.1f} | "
+                     f"{row['warm_wall_s']:.1f} | {row['warm_cpu_s']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
 def section(rows: list[dict], command: str, stamp) -> str:
     lines = [f"*{stamp(command)}*", "",
              "Each shipped law and combination compiles into its own kernel, once (then loaded from the "
@@ -107,5 +178,6 @@ def section(rows: list[dict], command: str, stamp) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run(command: str, stamp, echo=print) -> str:
-    return section(measure(echo=echo), command, stamp)
+def run(command: str, stamp, echo=print, rounds: int = 3) -> str:
+    scenes = measure_scenes(rounds, echo=echo)
+    return section(measure(echo=echo), command, stamp) + "\n" + section_scenes(scenes)

@@ -1,0 +1,77 @@
+"""Make numba's inlining of ``inline="always"`` functions copy each callee's IR once.
+
+Why: the kernel (``minidem.engine.kernel``) is one function per law and scene shape, built
+by numba inlining its per-step functions and helpers into ``advance``. Before inlining a
+callee, numba (``numba.core.inline_closurecall.InlineWorker.inline_ir``, up to at least
+0.68) deep-copies the callee's IR twice, one ``copy.deepcopy`` per basic block. Every
+variable refers to the function's scope, and the scope holds every variable, so each
+block's copy copies the whole scope again: the cost grows with blocks x variables. For
+the force pass (~55 blocks, ~1,300 statements) that was a third of the CPU time of a
+first run of scenarios/oblique.toml (3.9 of 10.9 s, measured with a timer around
+``copy.deepcopy``; numba issues #8989 and #9204 describe the same cost).
+
+The fix copies the blocks of one IR with one shared memo, as ``copy.deepcopy`` of the
+whole block dictionary would: the scope and the variables are copied once and shared by
+the copied blocks, exactly as they are shared by the original ones. The IR numba then
+builds is the same, statement for statement, and so is the machine code: the assembly of
+the oblique and settle kernels is byte-identical with and without it, that of the hopper
+kernel too apart from the names numba gives its constant byte strings (a hash that
+changes from process to process anyway). First run of scenarios/oblique.toml: 10.9 ->
+8.2 s of CPU, settle.toml's kernel 19.5 -> 13.7 s, hopper.toml's 38.0 -> 24.5 s (2-core
+AMD EPYC, empty caches, in-process).
+
+Installed once, when the engine is imported; nothing else in numba is touched. A numba
+whose inliner no longer matches (no ``copy`` module or no ``inline_ir`` there) is left
+as it is: the kernels then compile as before, only slower.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+
+from numba.core import inline_closurecall, ir
+
+
+class _BlockCopier:
+    """Stands in for the ``copy`` module inside numba's inliner: a deep copy of an IR
+    block shares its memo with the other blocks of the same scope copied in the same
+    ``inline_ir`` call (``memos`` is reset around every call, so a copy is never reused
+    for a later inlining, which mutates its copy)."""
+
+    def __init__(self):
+        self.memos: dict[int, dict] | None = None
+
+    def __getattr__(self, name):
+        return getattr(copy, name)
+
+    def deepcopy(self, value, memo=None):
+        if memo is None and self.memos is not None and isinstance(value, ir.Block):
+            # keyed by the scope's id: the memo keeps the scope alive, so the id is not reused
+            memo = self.memos.setdefault(id(value.scope), {})
+        return copy.deepcopy(value, memo)
+
+
+def install() -> bool:
+    """Install the block copier into numba's inliner (idempotent); False when this numba's
+    inliner is not the one it was written for."""
+    worker = getattr(inline_closurecall, "InlineWorker", None)
+    current = getattr(inline_closurecall, "copy", None)
+    if isinstance(current, _BlockCopier):
+        return True
+    if current is not copy or worker is None or not hasattr(worker, "inline_ir"):
+        return False
+    copier = _BlockCopier()
+    plain_inline_ir = worker.inline_ir
+
+    @functools.wraps(plain_inline_ir)
+    def inline_ir(self, *args, **kwargs):
+        outer, copier.memos = copier.memos, {}
+        try:
+            return plain_inline_ir(self, *args, **kwargs)
+        finally:
+            copier.memos = outer
+
+    worker.inline_ir = inline_ir
+    inline_closurecall.copy = copier
+    return True

@@ -1,0 +1,65 @@
+"""numba's inliner with minidem.engine.compile_speed installed: a callee's IR is copied
+with one memo for all its blocks, which must be a faithful, independent deep copy (the
+kernels' machine code is the same with and without it; their results are checked by
+every physics test)."""
+
+import copy
+
+import numba
+from numba.core import compiler, inline_closurecall, ir
+
+from minidem.engine import compile_speed, simulation  # noqa: F401  (simulation installs it)
+
+
+def _branchy(x, n):
+    total = 0.0
+    for k in range(n):
+        if x > k:
+            total += x * k
+        else:
+            total -= k
+    return total
+
+
+def test_installed_for_the_engine():
+    assert isinstance(inline_closurecall.copy, compile_speed._BlockCopier)
+    assert compile_speed.install()  # idempotent
+
+
+def test_block_copies_share_one_scope_and_equal_the_original():
+    function_ir = compiler.run_frontend(_branchy)
+    assert len(function_ir.blocks) > 3
+    copier = inline_closurecall.copy
+    outer, copier.memos = copier.memos, {}
+    try:
+        copies = {label: copier.deepcopy(block) for label, block in function_ir.blocks.items()}
+    finally:
+        copier.memos = outer
+    scopes = {id(block.scope) for block in copies.values()}
+    assert len(scopes) == 1  # one scope copy, shared as in the original
+    (scope,) = {block.scope for block in function_ir.blocks.values()}
+    assert next(iter(copies.values())).scope is not scope
+    for label, block in function_ir.blocks.items():
+        assert str(copies[label]) == str(block)
+        assert all(a is not b for a, b in zip(copies[label].body, block.body))
+    # an independent copy: renaming in the copy leaves the original as it was
+    before = {label: str(block) for label, block in function_ir.blocks.items()}
+    for block in copies.values():
+        for statement in block.body:
+            if isinstance(statement, ir.Assign):
+                statement.target = ir.Var(block.scope, statement.target.name + "_renamed", statement.target.loc)
+    assert {label: str(block) for label, block in function_ir.blocks.items()} == before
+    # outside inline_ir (no memos) it is the plain deep copy
+    assert copier.memos is None
+    block = next(iter(function_ir.blocks.values()))
+    assert str(copier.deepcopy(block)) == str(copy.deepcopy(block))
+
+
+def test_inlined_function_gives_the_plain_result():
+    inner = numba.njit(inline="always")(_branchy)
+
+    @numba.njit
+    def outer(x, n):
+        return inner(x, n) + inner(x + 1.0, n)
+
+    assert outer(2.5, 7) == _branchy(2.5, 7) + _branchy(3.5, 7)
