@@ -11,7 +11,6 @@ hands frames to an output callback.
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import dataclasses
 import functools
 import hashlib
@@ -389,24 +388,6 @@ def full_arrays(arrays: dict) -> dict[str, np.ndarray]:
         if name + "@rows" in arrays:
             out[name] = _full_array(arrays, name)
     return out
-
-
-# glibc's malloc serves blocks above its mmap threshold (128 KiB) from their own mappings,
-# returned to the system when freed, but raises the threshold to the size of every such
-# block freed (up to 32 MiB): after the first neighbour-list rebuild the lists of later
-# ones came from the heap, whose freed pieces stay resident. Fixed at the default, the
-# peak of the settle scene (N = 20,000, 3,000 steps, 27 rebuilds) fell from 181 to 175 MiB.
-_MMAP_THRESHOLD, _M_MMAP_THRESHOLD = 128 * 1024, -3
-
-
-@functools.cache
-def _keep_large_arrays_mapped() -> bool:
-    """Fix glibc's mmap threshold (once per process); False where there is no mallopt
-    (another C library), which changes nothing but the peak memory."""
-    try:
-        return bool(ctypes.CDLL(None).mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD))
-    except (AttributeError, OSError):
-        return False
 
 
 def pair_index_type(n_entries: int, n_particles: int):
@@ -903,7 +884,6 @@ class Simulation:
         restoring ``self.state`` to the last good state (and writing it, with checkpoints).
         """
         scene, k = self.scene, self.kernel
-        _keep_large_arrays_mapped()
         threads_before = numba.get_num_threads()
         threads = min(scene.threads or numba.config.NUMBA_NUM_THREADS, numba.config.NUMBA_NUM_THREADS)
         loop_threads = threads if self.parallel and scene.n_particles >= PARALLEL_MIN_PARTICLES else 1
