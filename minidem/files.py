@@ -26,13 +26,19 @@ def output_error(path, exc: OSError) -> OutputError:
                        + ("; free some space and run again" if exc.errno in (28, 122) else ""))
 
 
-def atomic_write(path: str | Path, data: bytes | str) -> Path:
+def atomic_write(path: str | Path, data) -> Path:
+    """Write ``data`` (bytes, str, or a callable given the open binary file, which writes
+    the content itself: a large file is then streamed, never held whole in memory) to
+    ``path`` atomically."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with open(tmp, "wb") as handle:
-            handle.write(data.encode() if isinstance(data, str) else data)
+            if callable(data):
+                data(handle)
+            else:
+                handle.write(data.encode() if isinstance(data, str) else data)
             handle.flush()
             os.fsync(handle.fileno())
         os.replace(tmp, path)

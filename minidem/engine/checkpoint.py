@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import io
 import json
 import os
 import re
@@ -88,11 +87,12 @@ def fingerprint(sim) -> str:
 def write(path: str | Path, arrays: dict, meta: dict) -> Path:
     """Write ``arrays`` and ``meta`` (JSON-able) to ``path`` atomically: a reader or a
     killed process sees the previous file or the new one, never a torn one."""
-    buffer = io.BytesIO()
     payload = {name: np.asarray(array, order="C") for name, array in arrays.items()}
     payload["meta"] = np.frombuffer(json.dumps(dict(meta, format=FORMAT)).encode(), dtype=np.uint8)
-    np.savez(buffer, **payload)
-    return atomic_write(path, buffer.getvalue())
+    # streamed into the temporary file: an archive assembled in memory first, then copied
+    # out as bytes, held the state twice more at the peak (settle, N = 200,000, the CLI's
+    # final_state.npz: 526 MiB against 291 MiB for the run itself)
+    return atomic_write(path, lambda handle: np.savez(handle, **payload))
 
 
 def read(path: str | Path) -> tuple[dict, dict]:

@@ -469,9 +469,8 @@ class State:
         :meth:`restore` and :func:`full_arrays` (what a checkpoint file holds) give the
         same bits back.
         """
-        live = {name: getattr(self, name) for name in _STATE_ARRAYS}
-        for group, names in _STATE_TUPLES.items():
-            live.update((name, array) for name, array in zip(names, getattr(self, group)) if name is not None)
+        live = self.live_arrays()
+        del live["builds"]
         arrays = {} if into is None else into
         for name, array in live.items():
             target = arrays.pop(name, None)
@@ -490,6 +489,15 @@ class State:
                 arrays[name] = array.copy()
         arrays["builds"] = np.array(self.builds, dtype=np.int64)
         return arrays
+
+    def live_arrays(self) -> dict[str, np.ndarray]:
+        """The arrays :meth:`capture` copies, as they are (no copy: for a file written
+        before the kernel runs again, e.g. the final state)."""
+        live = {name: getattr(self, name) for name in _STATE_ARRAYS}
+        for group, names in _STATE_TUPLES.items():
+            live.update((name, array) for name, array in zip(names, getattr(self, group)) if name is not None)
+        live["builds"] = np.array(self.builds, dtype=np.int64)
+        return live
 
     def restore(self, arrays: dict) -> None:
         for name in _STATE_ARRAYS:  # in place: the kernel's particle tuple holds these arrays
@@ -1108,14 +1116,16 @@ class _RunLoop:
     def mark_checked(self):
         self.checked, self.checked_counts = dict(self.loop), (len(self.energy), len(self.trace_chunks))
 
-    def snapshot(self, reuse=None):
+    def snapshot(self, reuse=None, live=False):
         """The state now, for checkpoints and as the last good state; ``reuse``: an
-        older snapshot, overwritten in place (one copy of the state, not two). The
+        older snapshot, overwritten in place (one copy of the state, not two); ``live``:
+        the state's own arrays, not copied (valid until the kernel runs again). The
         arrays and the loop's bookkeeping are recorded together with SIGINT/SIGTERM
         held, so an interrupt never finds them from two different steps."""
         with _interrupts_deferred():
             snap = {} if reuse is None else reuse
-            snap["arrays"] = self.state.capture(into=reuse["arrays"] if reuse else None)
+            snap["arrays"] = (self.state.live_arrays() if live else
+                              self.state.capture(into=reuse["arrays"] if reuse else None))
             snap.update(tracking=(self.probe.copy(), self.stats.copy(), self.status.copy()), loop=dict(self.loop),
                         energy=len(self.energy), trace=len(self.trace_chunks))
         return snap
@@ -1152,7 +1162,8 @@ class _RunLoop:
             if needs_rebuild:
                 sim.rebuild(state)
                 completing = True
-        last_good = self.snapshot()
+        # into the copy it was restored from, no longer needed: one copy of the state, not two
+        last_good = self.snapshot(good)
         last_good["loop"] = dict(checked)
         last_good["energy"], last_good["trace"] = self.checked_counts
         good_step = checked["steps"]
@@ -1287,7 +1298,11 @@ class _RunLoop:
             loop["last_frame_step"] = loop["steps"]
         wall_time = wallclock.perf_counter() - started
         if policy is not None:
-            self.write_state(self.checkpoint.FINAL_STATE, self.snapshot(), "final")
+            # the state's own arrays, not a copy, and the last good copy released first (the
+            # run is over: nothing restores from it now): a second and third copy of the
+            # state were the peak of a run that writes its final state
+            self.good = None
+            self.write_state(self.checkpoint.FINAL_STATE, self.snapshot(live=True), "final")
             Path(policy.path).unlink(missing_ok=True)  # the run is complete: nothing to resume
         return self.result(separated, wall_time)
 
