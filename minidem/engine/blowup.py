@@ -60,7 +60,8 @@ class Guard:
         self.mass, self.inertia = scene.mass, scene.inertia
         self.gravity = np.asarray(scene.gravity, dtype=np.float64)
         self.gravity_magnitude = float(np.linalg.norm(self.gravity))
-        self.initial_position = scene.position.copy()
+        # the scene's own positions (a run advances a copy of them), not another copy
+        self.initial_position = scene.position
         initial_kinetic = 0.5 * float(np.dot(self.mass, np.einsum("ik,ik->i", scene.velocity, scene.velocity))
                                       + np.dot(self.inertia, np.einsum("ik,ik->i", scene.angular_velocity,
                                                                        scene.angular_velocity)))

@@ -352,6 +352,11 @@ _STATE_TUPLES = {
 # that ends drops its history and its reaction): the last good state keeps only the rows
 # in use (State.capture)
 _SPARSE_ROWS = ("plane_history", "cylinder_history", "mesh_history", "pair_history", "pair_reaction")
+# arrays nothing writes into once made (the neighbour lists, replaced whole at a rebuild,
+# and the positions at the last build, likewise): a capture holds them themselves, not a
+# copy (44 bytes a particle of the settle scene's last good state), until a rebuild
+# replaces them in the state
+_SHARED = ("position_at_build", "pair_offsets", "pair_neighbours", "mesh_offsets", "mesh_candidates")
 _SPARSE_PARTS = ("@rows", "@values", "@shape")
 
 
@@ -376,7 +381,7 @@ def _full_array(arrays: dict, name: str) -> np.ndarray:
     """The array ``name`` of a capture, expanded if it was captured sparse."""
     if name in arrays:
         return arrays[name]
-    full = np.zeros(tuple(arrays[name + "@shape"]))
+    full = np.zeros(tuple(arrays[name + "@shape"]), dtype=arrays[name + "@values"].dtype)
     full[arrays[name + "@rows"]] = arrays[name + "@values"]
     return full
 
@@ -454,7 +459,8 @@ class State:
     # -- checkpoints -------------------------------------------------------------
     def capture(self, into: dict | None = None) -> dict[str, np.ndarray]:
         """Copies of every array the kernel carries from one step to the next (the
-        contact lists and histories exactly as they are, so no rebuild is needed to go on).
+        contact lists and histories exactly as they are, so no rebuild is needed to go on);
+        of those nothing writes into once made (``_SHARED``), the arrays themselves.
 
         ``into``: an earlier capture, overwritten in place and returned: its arrays are
         reused where their shapes still fit (a copy into existing memory is ten times
@@ -474,7 +480,10 @@ class State:
         arrays = {} if into is None else into
         for name, array in live.items():
             target = arrays.pop(name, None)
-            if name in _SPARSE_ROWS:
+            if name in _SHARED:
+                del target
+                arrays[name] = array
+            elif name in _SPARSE_ROWS:
                 del target
                 for part in _SPARSE_PARTS:
                     arrays.pop(name + part, None)  # the old copy goes before the new one is made
@@ -501,7 +510,10 @@ class State:
 
     def restore(self, arrays: dict) -> None:
         for name in _STATE_ARRAYS:  # in place: the kernel's particle tuple holds these arrays
-            getattr(self, name)[...] = arrays[name]
+            if name in _SHARED:  # a capture may hold this very array: a copy of its own
+                setattr(self, name, np.array(arrays[name], dtype=np.float64, order="C"))
+            else:
+                getattr(self, name)[...] = arrays[name]
         for group, names in _STATE_TUPLES.items():
             items = list(getattr(self, group))
             for k, name in enumerate(names):
@@ -851,25 +863,36 @@ class Simulation:
             try:
                 offsets, found = neighbours.build_pairs(state.position, radius, self.skin + self.max_reach)
                 found = found.astype(pair_index_type(found.shape[0], len(radius)), copy=False)
-                history, overlap = neighbours.carry_history(*old, offsets, found)
+                # zeros from the operating system: rows no contact is carried into stay
+                # unwritten (not resident) until a contact starts there
+                history = np.zeros((found.shape[0], old[2].shape[1]))
+                overlap = neighbours.carry_history(*old, offsets, found, history)
             except BaseException:
                 state.pairs = old + (None, None, None)  # as before the call (a failure restores from it)
                 raise
             del old
             if state.builds == 0:
-                # t = 0: spheres may start touching; their overlap is the 'previous' one
-                first = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
-                overlap = radius[first] + radius[found] - np.linalg.norm(
-                    state.position[first] - state.position[found], axis=1)
+                # t = 0: spheres may start touching; their overlap is the 'previous' one.
+                # A few rows at a time: whole-list temporaries (three (M, 3) arrays) were
+                # the peak of a large run's set-up (200 bytes a particle at N = 1,000,000)
+                rows_at_once = 1 << 16
+                for start in range(0, len(radius), rows_at_once):
+                    stop = min(start + rows_at_once, len(radius))
+                    entries = slice(offsets[start], offsets[stop])
+                    first = np.repeat(np.arange(start, stop), np.diff(offsets[start:stop + 1]))
+                    overlap[entries] = radius[first] + radius[found[entries]] - np.linalg.norm(
+                        state.position[first] - state.position[found[entries]], axis=1)
             reverse_offsets, slot = neighbours.reverse_index(offsets, found, len(radius))
             state.pairs = (offsets, found, history, overlap, np.zeros((found.shape[0], 6)), slot, reverse_offsets)
         if state.meshes[0].shape[0]:
             triangles, triangle_material, old_offsets, old_found, old_history, old_overlap = state.meshes
             offsets, found = neighbours.mesh_candidates(state.position, radius, self.skin, triangles)
-            history, overlap = neighbours.carry_history(old_offsets, old_found, old_history, old_overlap,
-                                                        offsets, found)
+            history = np.zeros((found.shape[0], old_history.shape[1]))
+            overlap = neighbours.carry_history(old_offsets, old_found, old_history, old_overlap, offsets, found,
+                                               history)
             state.meshes = (triangles, triangle_material, offsets, found, history, overlap)
-        state.position_at_build[:] = state.position
+        # a new array, not written in place: the last good state may hold the old one (_SHARED)
+        state.position_at_build = state.position.copy()
         state.builds += 1
 
     # -- running -----------------------------------------------------------------

@@ -76,12 +76,13 @@ def compile_shared(pairs: bool, meshes: bool) -> None:
         offsets, found = neighbours.build_pairs(position, scalar, 0.5)
         found = found.astype(pair_index_type(found.shape[0], n), copy=False)
         neighbours.carry_history(np.zeros(n + 1, dtype=np.int64), index.astype(found.dtype), history, overlap,
-                                 offsets, found)
+                                 offsets, found, np.zeros((found.shape[0], h)))
         neighbours.reverse_index(offsets, found, n)
     if meshes:
         triangles = np.array([[[0.0, 0.0, -1.0], [1.0, 0.0, -1.0], [0.0, 1.0, -1.0]]])
         offsets, found = neighbours.mesh_candidates(position, scalar, 0.5, triangles)
-        neighbours.carry_history(np.zeros(n + 1, dtype=np.int64), index, history, overlap, offsets, found)
+        neighbours.carry_history(np.zeros(n + 1, dtype=np.int64), index, history, overlap, offsets, found,
+                                 np.zeros((found.shape[0], h)))
     blowup.survey(position, vector, vector, vector, vector, scalar, scalar, position, np.zeros(3), np.zeros(3),
                   np.zeros(3))
     integrate.kinetic_energy(scalar, scalar, vector, vector)

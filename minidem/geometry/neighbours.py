@@ -15,6 +15,7 @@ call them from its own compiled loop. :class:`NeighbourList` is the convenience 
 for Python callers.
 """
 
+import math
 import time
 
 import numba
@@ -335,18 +336,21 @@ def benchmark_scaling(n_values=(2_000, 20_000, 200_000), thread_counts=(1, 2),
 # per-contact state across rebuilds
 # ---------------------------------------------------------------------------------
 @numba.njit(cache=True, parallel=True)
-def carry_history(old_offsets, old_keys, old_history, old_overlap, new_offsets, new_keys):
+def carry_history(old_offsets, old_keys, old_history, old_overlap, new_offsets, new_keys, history):
     """Per-entry contact state of a rebuilt CSR list, taken over from the old one.
 
     Both lists hold, per row, ascending keys (partner particles j > i, or triangle
     ids); a merge of the two sorted rows copies the history and last overlap of every
-    (row, key) present in both. New entries start with zero history and overlap -1
-    (not touching): the Verlet skin guarantees that a pair absent from the old list
-    was not in contact, so no live contact loses its history. Rows are independent,
-    so the result does not depend on the thread count.
+    (row, key) present in both. ``history`` (one row per new entry) must hold zeros: the
+    carried rows are written into it, the others left alone, so an array from the
+    operating system's zeroed pages (numpy's np.zeros) stays unwritten, and not
+    resident, where no contact was carried (24 bytes a list entry of a loose or falling
+    phase). Returns the last overlaps. New entries start with zero history and overlap
+    -1 (not touching): the Verlet skin guarantees that a pair absent from the old list
+    was not in contact, so no live contact loses its history. Rows are independent, so
+    the result does not depend on the thread count.
     """
     n_rows = new_offsets.shape[0] - 1
-    history = np.zeros((new_keys.shape[0], old_history.shape[1]))
     overlap = np.full(new_keys.shape[0], -1.0)
     for row in numba.prange(n_rows):
         a, a_end = old_offsets[row], old_offsets[row + 1]
@@ -355,9 +359,13 @@ def carry_history(old_offsets, old_keys, old_history, old_overlap, new_offsets, 
             while a < a_end and old_keys[a] < key:
                 a += 1
             if a < a_end and old_keys[a] == key:
-                history[b, :] = old_history[a, :]
+                # element by element: only a row that holds history is written (a copy of
+                # a zero row would still make its page resident)
+                for k in range(old_history.shape[1]):
+                    if old_history[a, k] != 0.0 or math.copysign(1.0, old_history[a, k]) < 0.0:
+                        history[b, k] = old_history[a, k]
                 overlap[b] = old_overlap[a]
-    return history, overlap
+    return overlap
 
 
 @numba.njit(cache=True)
