@@ -16,12 +16,12 @@ import numpy as np
 def blocks(threads: int, planes, pairs, n: int) -> tuple[np.ndarray, np.ndarray]:
     """(bounds, first partner) of the kernel's ``advance`` for the given thread count
     (see ``thread_blocks``). One thread is one block, all particles, and it is finished
-    in the force pass whatever its first partner: any index in 0..n-1 gives the same
-    operations in the same order. Zeros: pages the kernel only reads are never made
-    resident (8 bytes a particle less at the peak of a large run)."""
+    in the force pass whatever its first partner: any index in 0..n-1 (here the particle
+    itself, as ``thread_blocks`` would give a particle no row lists) gives the same
+    operations in the same order."""
     if threads > 1:
         return thread_blocks(threads, planes, pairs, n)
-    return np.array([0, n], dtype=np.int64), np.zeros(n, dtype=np.int64)
+    return np.array([0, n], dtype=np.int64), np.arange(n, dtype=np.int64)
 
 
 # Relative cost of the force pass per particle (gravity, the plane checks), per listed
