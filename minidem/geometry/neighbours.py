@@ -15,7 +15,6 @@ call them from its own compiled loop. :class:`NeighbourList` is the convenience 
 for Python callers.
 """
 
-import math
 import time
 
 import numba
@@ -201,18 +200,18 @@ def build_pairs(positions, radii, skin):
 
     # Pass 1 counts, pass 2 fills at prefix-sum offsets: no per-thread buffers or
     # atomics, and the output layout is independent of the thread count.
+    # The counts go straight into the offsets, summed in place: no separate count array
+    # (8 bytes a particle more at the peak of a rebuild).
     no_output = np.empty(0, dtype=np.int64)
-    counts = np.empty(n_particles, dtype=np.int64)
+    offsets = np.zeros(n_particles + 1, dtype=np.int64)
     for k in numba.prange(n_particles):
         i = particles_by_cell[k]
-        counts[i] = _scan_neighbourhood(
+        offsets[i + 1] = _scan_neighbourhood(
             i, cell_of_particle[i], cells_per_axis, cell_start, particles_by_cell,
             sorted_positions, sorted_radii, sorted_radii[k], sorted_positions[k],
             skin, no_output, False)
-
-    offsets = np.zeros(n_particles + 1, dtype=np.int64)
     for i in range(n_particles):
-        offsets[i + 1] = offsets[i] + counts[i]
+        offsets[i + 1] += offsets[i]
 
     neighbours = np.empty(offsets[n_particles], dtype=np.int64)
     for k in numba.prange(n_particles):
@@ -352,6 +351,10 @@ def carry_history(old_offsets, old_keys, old_history, old_overlap, new_offsets, 
     """
     n_rows = new_offsets.shape[0] - 1
     overlap = np.full(new_keys.shape[0], -1.0)
+    width = old_history.shape[1]
+    # the bits: a row is written when any is set (-0.0 included), else left alone (a copy
+    # of a zero row would still make its page resident)
+    old_bits = old_history.view(np.uint64)
     for row in numba.prange(n_rows):
         a, a_end = old_offsets[row], old_offsets[row + 1]
         for b in range(new_offsets[row], new_offsets[row + 1]):
@@ -359,10 +362,11 @@ def carry_history(old_offsets, old_keys, old_history, old_overlap, new_offsets, 
             while a < a_end and old_keys[a] < key:
                 a += 1
             if a < a_end and old_keys[a] == key:
-                # element by element: only a row that holds history is written (a copy of
-                # a zero row would still make its page resident)
-                for k in range(old_history.shape[1]):
-                    if old_history[a, k] != 0.0 or math.copysign(1.0, old_history[a, k]) < 0.0:
+                in_use = np.uint64(0)
+                for k in range(width):
+                    in_use |= old_bits[a, k]
+                if in_use != 0:
+                    for k in range(width):
                         history[b, k] = old_history[a, k]
                 overlap[b] = old_overlap[a]
     return overlap
