@@ -84,7 +84,11 @@ def command_run(args) -> int:
     for option, given in (("--scheduler", args.scheduler), ("--restart", args.restart), ("--workers", args.workers)):
         if given is not None and given is not False:
             warnings.warn(f"{option} ignored: {args.file} has no [sweep] table (a single run)")
-    scene = scenario.load_scene(args.file, args.set, args.out)
+    from minidem.engine import warmup
+
+    # on a fresh install the scene's kernel compiles in a helper while the check of
+    # overlapping spheres compiles the neighbour search here
+    scene = scenario.load_scene(args.file, args.set, args.out, while_checking=warmup.kernel_beside_check)
     directory = scenario.prepare_output_directory(scene.output_directory, scenario.output_origin(args.out, scene.raw), args.file)
     sim = simulation.Simulation(scene, notify=None if args.quiet else _note)
     policy = checkpoint.Policy(directory, scene.checkpoint_interval, scene.checkpoint_wall_interval)

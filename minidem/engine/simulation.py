@@ -885,14 +885,19 @@ class Simulation:
         """
         scene, k = self.scene, self.kernel
         threads_before = numba.get_num_threads()
-        threads = min(scene.threads or numba.config.NUMBA_NUM_THREADS, numba.config.NUMBA_NUM_THREADS)
-        loop_threads = threads if self.parallel and scene.n_particles >= PARALLEL_MIN_PARTICLES else 1
+        loop_threads = self.loop_threads()
         # every parallel loop, the neighbour-list builds too, runs on the particle loops' count
         numba.set_num_threads(loop_threads)
         try:
             return _RunLoop(self, chunk_steps, progress, on_frame, loop_threads, checkpoints, resume_from).run()
         finally:
             numba.set_num_threads(threads_before)
+
+    def loop_threads(self) -> int:
+        """How many threads the run's particle loops use (one below PARALLEL_MIN_PARTICLES)."""
+        scene = self.scene
+        threads = min(scene.threads or numba.config.NUMBA_NUM_THREADS, numba.config.NUMBA_NUM_THREADS)
+        return threads if self.parallel and scene.n_particles >= PARALLEL_MIN_PARTICLES else 1
 
     def frame_interval(self, end_time: float) -> float | None:
         scene = self.scene
@@ -1062,14 +1067,20 @@ class _RunLoop:
                 self.on_frame.restore(meta["frames_series"], loop["frames"])
         meshes = state.meshes[0].shape[0] > 0
         # on a fresh install the engine's shared functions compile in a helper process
-        # beside the kernel (nothing is started when they are cached)
-        helper = warmup.start(sim.pairs, meshes)
+        # beside the kernel (nothing is started when they are cached); or, when a helper
+        # is compiling this scene's kernel already (started by `minidem run` beside the
+        # scene's check), this process compiles them meanwhile
+        kernel_helper = warmup.kernel_helper(self.scene)
+        helper = warmup.start(sim.pairs, meshes) if kernel_helper is None else kernel_helper
         try:
             # the one compilation of this kernel, reported against the law that caused it; a
             # user waiting for it is told what it is
             compiling = _notice_if_slow(sim.notify, f"compiling the kernel of law '{sim.law.name}' for this scene "
                                         f"shape; it is cached in {cache_directory()} for later runs")
             with compiling:
+                if kernel_helper is not None:
+                    warmup.compile_shared(sim.pairs, meshes)
+                    kernel_helper.wait()
                 self.compile_kernel()
                 helper.wait()
                 if self.resume_from is None and (sim.pairs or meshes):

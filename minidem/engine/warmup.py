@@ -15,6 +15,17 @@ guard's survey and the kinetic energy) in the first run of scenarios/oblique.tom
 scenarios/settle.toml, whose ``build_pairs`` is already compiled by then: the scene's
 check for overlapping spheres at t = 0 needs it before anything else (2-core AMD EPYC).
 
+A scene with more than one sphere needs the neighbour search before anything else, to
+check that no spheres overlap at t = 0 (``minidem.scene.scenario``): on a fresh install
+that is ~4 s of compiling (``build_pairs``, parallel) that the kernel's own ~6 s would
+follow. ``minidem run`` therefore starts the helper earlier, around that check
+(:func:`kernel_beside_check`), with the other job: it compiles the scene's kernel (the
+scene sent to it pickled, its ``Simulation`` and the types of its ``advance`` built as
+the run builds them), while this process compiles the neighbour search for the check and
+then the other shared functions itself, and loads the kernel from the cache when the
+helper is done (:func:`kernel_helper`). First run of scenarios/settle.toml: the two
+compilations side by side instead of one after the other.
+
 Only the wall time changes (the CPU time grows by the helper's own start, ~0.5 s): the
 same functions are compiled for the same argument types and the run loads the same
 machine code it would have compiled. A helper that cannot start, fails or compiled
@@ -25,7 +36,10 @@ functions are cached already (every run after the first), nor on a one-CPU machi
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import os
+import pickle
 import subprocess
 import sys
 
@@ -93,6 +107,13 @@ class Helper:
     def __init__(self, process: subprocess.Popen):
         self.process = process
 
+    def stop(self) -> None:
+        """End a helper whose work is no longer wanted (the run will not happen)."""
+        if self.process is not None and self.process.poll() is None:
+            self.process.kill()
+            self.process.wait()
+        self.process = None
+
     def wait(self) -> None:
         """Until the helper has finished (at most WAIT_LIMIT_S; a helper still running
         then is left to finish on its own, and the run compiles what it needs)."""
@@ -105,18 +126,87 @@ class Helper:
         self.process = None
 
 
-def start(pairs: bool, meshes: bool) -> Helper:
-    """Start a helper when some shared function the scene needs is not cached yet and
-    there is a second CPU to run it on; otherwise a Helper that waits for nothing."""
-    if (os.cpu_count() or 1) < 2 or numba.config.DISABLE_JIT:
-        return Helper(None)
-    if all(_cached(dispatcher) for dispatcher in _dispatchers(pairs, meshes).values()):
-        return Helper(None)
-    code = f"from minidem.engine import warmup; warmup.compile_shared({bool(pairs)}, {bool(meshes)})"
+def _spawn(code: str, stdin_bytes: bytes | None = None) -> Helper:
+    """A helper running ``code`` in this Python, with the same environment, so the same
+    caches (MINIDEM_CACHE_DIR, NUMBA_CACHE_DIR), and ``stdin_bytes`` on its standard input."""
     try:
-        # the same environment, so the same caches (MINIDEM_CACHE_DIR, NUMBA_CACHE_DIR)
-        process = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.DEVNULL,
+        process = subprocess.Popen([sys.executable, "-c", code],
+                                   stdin=subprocess.DEVNULL if stdin_bytes is None else subprocess.PIPE,
                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     except OSError:
         return Helper(None)
+    if stdin_bytes is not None:
+        try:
+            with process.stdin:
+                process.stdin.write(stdin_bytes)
+        except OSError:  # it died already: the run compiles everything itself
+            pass
     return Helper(process)
+
+
+def _second_cpu() -> bool:
+    return (os.cpu_count() or 1) >= 2 and not numba.config.DISABLE_JIT
+
+
+def start(pairs: bool, meshes: bool) -> Helper:
+    """Start a helper when some shared function the scene needs is not cached yet and
+    there is a second CPU to run it on; otherwise a Helper that waits for nothing."""
+    if not _second_cpu():
+        return Helper(None)
+    if all(_cached(dispatcher) for dispatcher in _dispatchers(pairs, meshes).values()):
+        return Helper(None)
+    return _spawn(f"from minidem.engine import warmup; warmup.compile_shared({bool(pairs)}, {bool(meshes)})")
+
+
+# scenes whose kernel a helper compiles (id -> (scene, helper)), until their run takes it
+_KERNEL_HELPERS: dict[int, tuple] = {}
+
+
+@contextlib.contextmanager
+def kernel_beside_check(scene):
+    """Around the geometry check of a scene ``minidem run`` is about to run (the
+    ``while_checking`` of ``minidem.scene.scenario.build_scene``): when the check must
+    compile the neighbour search first (a fresh install), a helper compiles the scene's
+    kernel meanwhile. Ended if the check refuses the scene (no run follows)."""
+    helper = Helper(None)
+    if scene.n_particles > 1 and _second_cpu():
+        from minidem.geometry import neighbours
+
+        if not _cached(neighbours.build_pairs):
+            helper = _spawn("from minidem.engine import warmup; warmup.compile_kernel_of_scene()",
+                            pickle.dumps(scene, protocol=pickle.HIGHEST_PROTOCOL))
+    try:
+        yield
+    except BaseException:
+        helper.stop()
+        raise
+    if helper.process is not None:
+        _KERNEL_HELPERS[id(scene)] = (scene, helper)
+
+
+@atexit.register
+def _stop_unclaimed() -> None:
+    """A process leaving before its run (bad input found after the check) ends its helpers."""
+    while _KERNEL_HELPERS:
+        _KERNEL_HELPERS.popitem()[1][1].stop()
+
+
+def kernel_helper(scene) -> Helper | None:
+    """The helper compiling this scene's kernel (:func:`kernel_beside_check`), or None;
+    the run that asks takes it."""
+    found = _KERNEL_HELPERS.pop(id(scene), None)
+    if found is None or found[0] is not scene:
+        return None
+    return found[1]
+
+
+def compile_kernel_of_scene() -> None:
+    """The helper's side of :func:`kernel_beside_check`: the scene from standard input,
+    its Simulation as ``minidem run`` builds it, and the kernel's ``advance`` compiled for
+    the types of the arguments the run passes (into the caches the run loads it from)."""
+    from minidem.engine import simulation
+
+    scene = pickle.load(sys.stdin.buffer)
+    sim = simulation.Simulation(scene)
+    loop = simulation._RunLoop(sim, 1, None, None, sim.loop_threads(), None, None)
+    loop.compile_kernel()
