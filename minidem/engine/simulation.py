@@ -1071,7 +1071,7 @@ class _RunLoop:
         # is compiling this scene's kernel already (started by `minidem run` beside the
         # scene's check), this process compiles them meanwhile
         kernel_helper = warmup.kernel_helper(self.scene)
-        helper = warmup.start(sim.pairs, meshes) if kernel_helper is None else kernel_helper
+        helper = warmup.start(sim.pairs, meshes, sim.law) if kernel_helper is None else kernel_helper
         try:
             # the one compilation of this kernel, reported against the law that caused it; a
             # user waiting for it is told what it is
@@ -1081,7 +1081,8 @@ class _RunLoop:
                 if kernel_helper is not None:
                     warmup.compile_shared(sim.pairs, meshes)
                     kernel_helper.wait()
-                self.compile_kernel()
+                with helper.law_compiled(sim.law.force):
+                    self.compile_kernel()
                 helper.wait()
                 if self.resume_from is None and (sim.pairs or meshes):
                     sim.rebuild(state)
@@ -1418,6 +1419,14 @@ _FORCE_SIGNATURE = (numba.types.Array(numba.types.float64, 1, "C"), *(numba.type
 
 _ROW, _FLOAT, _VECTOR = (numba.types.Array(numba.types.float64, 1, "C"), numba.types.float64,
                          numba.types.UniTuple(numba.types.float64, 3))
+# a law with a couple (law.couples) also takes the relative spin, the normal and dt
+_COUPLE_FORCE_SIGNATURE = (*_FORCE_SIGNATURE, _VECTOR, _VECTOR, _FLOAT)
+
+
+def force_signature(law: laws.ContactLaw) -> tuple:
+    """The argument types the kernel passes the law's force function."""
+    return _COUPLE_FORCE_SIGNATURE if law.couples else _FORCE_SIGNATURE
+
 # the argument types a part's function is called with (minidem.contact.laws.PART_ARGUMENTS)
 # and how many numbers it returns (0: one number)
 _PART_SIGNATURES = {

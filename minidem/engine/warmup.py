@@ -64,12 +64,16 @@ def _dispatchers(pairs: bool, meshes: bool) -> dict:
 
 
 def _cached(dispatcher) -> bool:
-    """Whether numba's cache has an index for this function (compiled by an earlier run);
-    True when that cannot be told (no helper then)."""
+    """Whether numba's cache holds machine code of this function (compiled by an earlier
+    run, for its current source): an index with entries (the kernel's compile_kernel
+    empties a law's index when a new kernel is built against it); True when that cannot be
+    told (no helper then)."""
     try:
-        return os.path.exists(dispatcher._cache._cache_file._index_path)
+        return bool(dispatcher._cache._cache_file._load_index())
     except AttributeError:
         return True
+    except Exception:  # an unreadable index: numba would compile it anew
+        return False
 
 
 def compile_shared(pairs: bool, meshes: bool) -> None:
@@ -104,8 +108,40 @@ def compile_shared(pairs: bool, meshes: bool) -> None:
 class Helper:
     """A helper process compiling the shared functions (see the module docstring)."""
 
-    def __init__(self, process: subprocess.Popen):
+    def __init__(self, process: subprocess.Popen | None, law_first: bool = False):
         self.process = process
+        # it compiles the law's force function first and then says so on its standard output
+        self.law_pending = law_first and process is not None
+
+    def wait_for_law(self) -> None:
+        """Until the helper has compiled the law's force function (or ended)."""
+        if self.law_pending:
+            self.law_pending = False
+            try:
+                self.process.stdout.readline()  # "law", or nothing at its end
+            except (OSError, ValueError):
+                pass
+
+    @contextlib.contextmanager
+    def law_compiled(self, force):
+        """Around the kernel's compilation: when the kernel's typing reaches the law's force
+        function (``force``, a numba dispatcher, compiled on its own and linked into the
+        kernel), first wait for the helper compiling it, so that it is loaded from the cache
+        instead of compiled a second time."""
+        if not self.law_pending or not hasattr(force, "compile"):
+            yield
+            return
+        plain_compile = force.compile
+
+        def compile_after_helper(sig):
+            self.wait_for_law()
+            return plain_compile(sig)
+
+        force.compile = compile_after_helper
+        try:
+            yield
+        finally:
+            del force.compile
 
     def stop(self) -> None:
         """End a helper whose work is no longer wanted (the run will not happen)."""
@@ -126,13 +162,14 @@ class Helper:
         self.process = None
 
 
-def _spawn(code: str, stdin_bytes: bytes | None = None) -> Helper:
+def _spawn(code: str, stdin_bytes: bytes | None = None, law_first: bool = False) -> Helper:
     """A helper running ``code`` in this Python, with the same environment, so the same
     caches (MINIDEM_CACHE_DIR, NUMBA_CACHE_DIR), and ``stdin_bytes`` on its standard input."""
     try:
         process = subprocess.Popen([sys.executable, "-c", code],
                                    stdin=subprocess.DEVNULL if stdin_bytes is None else subprocess.PIPE,
-                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                   stdout=subprocess.PIPE if law_first else subprocess.DEVNULL,
+                                   stderr=subprocess.DEVNULL)
     except OSError:
         return Helper(None)
     if stdin_bytes is not None:
@@ -141,21 +178,42 @@ def _spawn(code: str, stdin_bytes: bytes | None = None) -> Helper:
                 process.stdin.write(stdin_bytes)
         except OSError:  # it died already: the run compiles everything itself
             pass
-    return Helper(process)
+    return Helper(process, law_first)
 
 
 def _second_cpu() -> bool:
     return (os.cpu_count() or 1) >= 2 and not numba.config.DISABLE_JIT
 
 
-def start(pairs: bool, meshes: bool) -> Helper:
-    """Start a helper when some shared function the scene needs is not cached yet and
-    there is a second CPU to run it on; otherwise a Helper that waits for nothing."""
+def start(pairs: bool, meshes: bool, law=None) -> Helper:
+    """Start a helper when the law's force function (``law``, a ContactLaw) or some shared
+    function the scene needs is not cached yet and there is a second CPU to run it on;
+    otherwise a Helper that waits for nothing."""
     if not _second_cpu():
         return Helper(None)
-    if all(_cached(dispatcher) for dispatcher in _dispatchers(pairs, meshes).values()):
+    law_first = law is not None and hasattr(law.force, "compile") and not _cached(law.force)
+    shared = not all(_cached(dispatcher) for dispatcher in _dispatchers(pairs, meshes).values())
+    if not law_first and not shared:
         return Helper(None)
-    return _spawn(f"from minidem.engine import warmup; warmup.compile_shared({bool(pairs)}, {bool(meshes)})")
+    return _spawn(f"from minidem.engine import warmup; warmup.compile_for_run("
+                  f"{law.name if law_first else None!r}, {shared}, {bool(pairs)}, {bool(meshes)})", law_first=law_first)
+
+
+def compile_for_run(law_name: str | None, shared: bool, pairs: bool, meshes: bool) -> None:
+    """The helper's side of :func:`start`: the law's force function for the types the
+    kernel passes it (then "law" on standard output: the run waits for that line before
+    it would compile it itself), then the shared functions."""
+    if law_name is not None:
+        try:
+            from minidem.contact import laws
+            from minidem.engine.simulation import force_signature
+
+            law = laws.registry().entry(law_name).law
+            law.force.compile(force_signature(law))
+        finally:
+            print("law", flush=True)  # compiled or not: the run must not wait any longer
+    if shared:
+        compile_shared(pairs, meshes)
 
 
 # scenes whose kernel a helper compiles (id -> (scene, helper)), until their run takes it
