@@ -40,6 +40,7 @@ import atexit
 import contextlib
 import os
 import pickle
+import select
 import subprocess
 import sys
 
@@ -118,7 +119,9 @@ class Helper:
         if self.law_pending:
             self.law_pending = False
             try:
-                self.process.stdout.readline()  # "law", or nothing at its end
+                # "law", or nothing at its end; at most WAIT_LIMIT_S
+                if select.select([self.process.stdout], [], [], WAIT_LIMIT_S)[0]:
+                    self.process.stdout.readline()
             except (OSError, ValueError):
                 pass
 
@@ -148,7 +151,12 @@ class Helper:
         if self.process is not None and self.process.poll() is None:
             self.process.kill()
             self.process.wait()
-        self.process = None
+        self._release()
+
+    def _release(self) -> None:
+        if self.process is not None and self.process.stdout is not None:
+            self.process.stdout.close()
+        self.process, self.law_pending = None, False
 
     def wait(self) -> None:
         """Until the helper has finished (at most WAIT_LIMIT_S; a helper still running
@@ -159,7 +167,7 @@ class Helper:
             self.process.wait(timeout=WAIT_LIMIT_S)
         except subprocess.TimeoutExpired:
             pass
-        self.process = None
+        self._release()
 
 
 def _spawn(code: str, stdin_bytes: bytes | None = None, law_first: bool = False) -> Helper:
