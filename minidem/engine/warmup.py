@@ -23,7 +23,8 @@ follow. ``minidem run`` therefore starts the helper earlier, around that check
 scene sent to it pickled, its ``Simulation`` and the types of its ``advance`` built as
 the run builds them), while this process compiles the neighbour search for the check and
 then the other shared functions itself, and loads the kernel from the cache when the
-helper is done (:func:`kernel_helper`). First run of scenarios/settle.toml: the two
+helper is done (:func:`kernel_helper`); the guard's two functions go to whichever of the
+two is free first. First run of scenarios/settle.toml: the two
 compilations side by side instead of one after the other.
 
 Only the wall time changes (the CPU time grows by the helper's own start, ~0.5 s): the
@@ -81,7 +82,6 @@ def compile_shared(pairs: bool, meshes: bool) -> None:
     """Compile (into numba's cache) the shared functions a scene with pairs or meshes
     needs, by calling them on two particles with the argument types the engine passes
     (C-contiguous float64 and int64 arrays, a float skin, an int count)."""
-    from minidem.engine import blowup, integrate
     from minidem.engine.simulation import pair_index_type
     from minidem.geometry import neighbours
 
@@ -101,9 +101,21 @@ def compile_shared(pairs: bool, meshes: bool) -> None:
         triangles = np.array([[[0.0, 0.0, -1.0], [1.0, 0.0, -1.0], [0.0, 1.0, -1.0]]])
         offsets, found = neighbours.mesh_candidates(position, scalar, 0.5, triangles)
         neighbours.carry_history(np.zeros(n + 1, dtype=np.int64), index, history, overlap, offsets, found)
-    blowup.survey(position, vector, vector, vector, vector, scalar, scalar, position, np.zeros(3), np.zeros(3),
-                  np.zeros(3))
-    integrate.kinetic_energy(scalar, scalar, vector, vector)
+    compile_guard()
+
+
+def compile_guard(reverse: bool = False) -> None:
+    """Compile (into numba's cache) the blow-up guard's survey and the kinetic energy
+    (``reverse``: in the other order, for a second process doing the same, see
+    :func:`compile_kernel_of_scene`)."""
+    from minidem.engine import blowup, integrate
+
+    position, vector, scalar = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), np.zeros((2, 3)), np.ones(2)
+    calls = [lambda: blowup.survey(position, vector, vector, vector, vector, scalar, scalar, position, np.zeros(3),
+                                   np.zeros(3), np.zeros(3)),
+             lambda: integrate.kinetic_energy(scalar, scalar, vector, vector)]
+    for call in reversed(calls) if reverse else calls:
+        call()
 
 
 class Helper:
@@ -276,3 +288,7 @@ def compile_kernel_of_scene() -> None:
     sim = simulation.Simulation(scene)
     loop = simulation._RunLoop(sim, 1, None, None, sim.loop_threads(), None, None)
     loop.compile_kernel()
+    # then the guard's functions, unless the run has compiled them meanwhile (a call loads
+    # them from the cache then), in the other order than the run's: whichever process is
+    # free first takes them
+    compile_guard(reverse=True)
