@@ -86,3 +86,35 @@ def test_the_run_loads_the_kernel_the_helper_compiled_beside_the_check(tmp_path)
     again = subprocess.run([sys.executable, "-c", _LOAD_WITH_HELPER], env=env, capture_output=True, text=True)
     assert again.returncode == 0, again.stderr
     assert not json.loads(again.stdout.strip().splitlines()[-1])["started"]
+
+
+_LAW_FROM_HELPER = """
+import json
+from minidem.engine import simulation
+from minidem.scene import scenario
+# one sphere on a plane: no neighbour search; a law with a couple (hm + epsd rolling
+# resistance), whose force function takes the longer argument list
+scene = scenario.load_scene("scenarios/oblique.toml", ['contact.law="hm"', 'contact.rolling="epsd"',
+                                                        "contact.rolling_friction=0.1"])
+sim = simulation.Simulation(scene)
+sim.run()
+force = sim.law.force
+print(json.dumps({"couples": bool(sim.law.couples), "force": [sum(force.stats.cache_hits.values()),
+                                                              sum(force.stats.cache_misses.values())]}))
+"""
+
+
+def test_the_kernel_loads_the_law_the_helper_compiled(tmp_path):
+    """On a fresh install the helper compiles the law's force function first, for the
+    argument types the kernel passes it (simulation.force_signature), and the kernel's
+    compilation waits for it: in the run's process the law is a cache hit, never compiled."""
+    env = dict(os.environ, MINIDEM_CACHE_DIR=str(tmp_path / "minidem"), NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    run = subprocess.run([sys.executable, "-c", _LAW_FROM_HELPER], env=env, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    found = json.loads(run.stdout.strip().splitlines()[-1])
+    assert found["couples"], found
+    hits, misses = found["force"]
+    if (os.cpu_count() or 1) < 2:  # no helper: the kernel compiles the law itself
+        assert misses == 1, found
+    else:
+        assert hits >= 1 and misses == 0, found

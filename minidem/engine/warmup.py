@@ -251,8 +251,12 @@ def kernel_beside_check(scene):
         from minidem.geometry import neighbours
 
         if not _cached(neighbours.build_pairs):
-            helper = _spawn("from minidem.engine import warmup; warmup.compile_kernel_of_scene()",
-                            pickle.dumps(scene, protocol=pickle.HIGHEST_PROTOCOL))
+            try:
+                sent = pickle.dumps(scene, protocol=pickle.HIGHEST_PROTOCOL)
+            except Exception:  # a scene that cannot be sent: the run compiles its kernel itself
+                sent = None
+            if sent is not None:
+                helper = _spawn("from minidem.engine import warmup; warmup.compile_kernel_of_scene()", sent)
     try:
         yield
     except BaseException:
