@@ -8,6 +8,7 @@ A Python traceback is shown only with ``--debug``.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import signal
@@ -88,7 +89,8 @@ def command_run(args) -> int:
 
     # on a fresh install the scene's kernel compiles in a helper while the check of
     # overlapping spheres compiles the neighbour search here
-    scene = scenario.load_scene(args.file, args.set, args.out, while_checking=warmup.kernel_beside_check)
+    scene = scenario.load_scene(args.file, args.set, args.out, while_checking=functools.partial(
+        warmup.kernel_beside_check, notify=None if args.quiet else _note))
     directory = scenario.prepare_output_directory(scene.output_directory, scenario.output_origin(args.out, scene.raw), args.file)
     sim = simulation.Simulation(scene, notify=None if args.quiet else _note)
     policy = checkpoint.Policy(directory, scene.checkpoint_interval, scene.checkpoint_wall_interval)

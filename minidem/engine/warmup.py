@@ -241,11 +241,12 @@ _KERNEL_HELPERS: dict[int, tuple] = {}
 
 
 @contextlib.contextmanager
-def kernel_beside_check(scene):
+def kernel_beside_check(scene, notify=None):
     """Around the geometry check of a scene ``minidem run`` is about to run (the
     ``while_checking`` of ``minidem.scene.scenario.build_scene``): when the check must
     compile the neighbour search first (a fresh install), a helper compiles the scene's
-    kernel meanwhile. Ended if the check refuses the scene (no run follows)."""
+    kernel meanwhile. Ended if the check refuses the scene (no run follows).
+    ``notify(text)``: told what is compiled if that takes more than SLOW_NOTICE_S."""
     helper = Helper(None)
     if scene.n_particles > 1 and _second_cpu():
         from minidem.geometry import neighbours
@@ -258,7 +259,15 @@ def kernel_beside_check(scene):
             if sent is not None:
                 helper = _spawn("from minidem.engine import warmup; warmup.compile_kernel_of_scene()", sent)
     try:
-        yield
+        if helper.process is None:
+            yield
+        else:
+            from minidem.engine.simulation import _notice_if_slow, cache_directory
+
+            with _notice_if_slow(notify, "compiling the neighbour search for the check of overlapping spheres, "
+                                 "and beside it the scene's kernel; both are cached in "
+                                 f"{cache_directory()} for later runs"):
+                yield
     except BaseException:
         helper.stop()
         raise
