@@ -156,6 +156,25 @@ def _particle_counts(text: str) -> tuple[int, ...]:
     return counts
 
 
+def _run_steps(text: str) -> int:
+    """``--steps``: a whole number of steps >= 1."""
+    try:
+        steps = int(text.replace("_", ""))
+    except ValueError:
+        steps = 0
+    if steps < 1:
+        raise argparse.ArgumentTypeError(f"'{text}': expected a whole number of steps >= 1, e.g. 400")
+    return steps
+
+
+def _variants(text: str) -> tuple[str, ...]:
+    """``--variants``: the settle scene's start positions, comma-separated."""
+    names = tuple(part.strip() for part in text.split(","))
+    if not names or any(name not in ("lattice", "jitter") for name in names):
+        raise argparse.ArgumentTypeError(f"'{text}': expected lattice, jitter or lattice,jitter")
+    return names
+
+
 def _note(text: str) -> None:
     """What a slow step of the set-up is doing (before the header: the time step needs it)."""
     print(f"minidem: {text} ...", file=sys.stderr, flush=True)
@@ -357,13 +376,20 @@ def build_parser() -> argparse.ArgumentParser:
                            "writes docs/benchmarks.md and docs/figures/")
     bench.add_argument("--quick", action="store_true", help="a small subset (CI smoke run)")
     bench.add_argument("--only", action="append", choices=("single-impact", "work-precision", "model-only",
-                                                             "sweep-timing", "multi-particle", "compile"),
-                       help="run only this section (repeatable); multi-particle and compile (the compile time "
-                            "of each shipped law and combination) run only when named")
+                                                             "sweep-timing", "multi-particle", "multi-particle-scale",
+                                                             "compile"),
+                       help="run only this section (repeatable); multi-particle, multi-particle-scale (settle.md's "
+                            "200,000 and 1,000,000 spheres) and compile (the compile time of each shipped law and "
+                            "combination) run only when named")
     bench.add_argument("--sizes", type=_particle_counts, default=None, metavar="N,N,...",
-                       help="multi-particle: the particle counts of the settle scene (default 2000,20000); e.g. "
-                            "2000,20000,200000,1000000 adds the scale variants, which run fewer steps (at most "
-                            "2e9 particle-steps a run: 2,000 steps at 1,000,000) and take hours with LIGGGHTS")
+                       help="the particle counts of the settle scene: multi-particle (default 2000,20000), "
+                            "multi-particle-scale (default 200000,1000000: at most 2e9 particle-steps a run, 2,000 "
+                            "steps at 1,000,000; hours with LIGGGHTS)")
+    bench.add_argument("--variants", type=_variants, default=None, metavar="V,V",
+                       help="multi-particle sections: lattice, jitter or both (default lattice,jitter)")
+    bench.add_argument("--steps", type=_run_steps, default=None, metavar="STEPS",
+                       help="multi-particle sections: steps of every run (default settle.md's: 10,000, fewer "
+                            "at scale); the table says how many")
     bench.add_argument("--docs", type=Path, default=None, help="docs directory to write (default: the project's)")
     bench.set_defaults(handler=command_bench)
     return parser
