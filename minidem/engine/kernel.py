@@ -313,7 +313,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
     """
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     pair_row, constants = law
-    wall_point, wall_normal, wall_material, wall_history, wall_overlap = planes
+    wall_point, wall_normal, wall_material, wall_history, wall_overlap, near_offsets, near_planes = planes
     base, axis, cylinder_radius, length, cylinder_material, cylinder_history, cylinder_overlap_prev = cylinders
     triangles, triangle_material, mesh_offsets, mesh_candidates, mesh_history, mesh_overlap = meshes
     offsets, neighbours, pair_history, pair_overlap, reaction, reaction_slot, reverse_offsets = pairs
@@ -336,8 +336,12 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
 
         # Walls. Each kind has its own loop: binding the history rows of different
         # arrays to one variable would cost reference counting per contact (see above).
-        # planes: a plane's normal never turns, so its history needs no rotation
-        for w in range(wall_point.shape[0]):
+        # planes: those near i (State.list_near_planes; all of them in a tracked kernel);
+        # a plane's normal never turns, so its history needs no rotation
+        for k in range(near_offsets[i], near_offsets[i + 1]):
+            if k < 0:  # never (non_negative)
+                continue
+            w = non_negative(near_planes[k])
             overlap = plane_overlap(px, py, pz, ri, wall_point, wall_normal, w)
             previous = wall_overlap[i, w]
             wall_overlap[i, w] = overlap

@@ -338,7 +338,8 @@ class RunResult:
 # argument tuple by position (None: fixed by the scene, not saved)
 _STATE_ARRAYS = ("position", "velocity", "angular_velocity", "force", "torque", "position_at_build")
 _STATE_TUPLES = {
-    "planes": (None, None, None, "plane_history", "plane_overlap"),
+    # the planes near each sphere follow from the position at the last build (State.restore)
+    "planes": (None, None, None, "plane_history", "plane_overlap", None, None),
     "cylinders": (None, None, None, None, None, "cylinder_history", "cylinder_overlap"),
     "meshes": (None, None, "mesh_offsets", "mesh_candidates", "mesh_history", "mesh_overlap"),
     # the reactions' slots and the transposed offsets follow from the list (State.restore
@@ -427,6 +428,13 @@ class State:
             plane_overlap = np.minimum(plane_overlap, 0.0)
         self.planes = (scene.wall_point, scene.wall_normal, scene.wall_material,
                        np.zeros((n, scene.wall_point.shape[0], h)), plane_overlap)
+        # The kernel checks only the planes near each sphere (neighbours.near_planes), listed
+        # at each list build. Every plane for a scene without list builds, and for the
+        # tracked (serial) kernel: its contact statistics interpolate each plane's touch and
+        # separation times from the overlap of the step before, which a plane skipped since
+        # the last build would hold stale.
+        self.plane_margin = sim.skin + sim.max_reach if sim.parallel and (sim.pairs or walls.triangles.shape[0]) \
+            else None
         n_cylinders = walls.cylinder_base.shape[0]
         self.cylinders = (walls.cylinder_base, walls.cylinder_axis, walls.cylinder_radius, walls.cylinder_length,
                           walls.cylinder_material, np.zeros((n, n_cylinders, h)), np.full((n, n_cylinders), -1.0))
@@ -439,7 +447,13 @@ class State:
         self.pairs = (np.zeros(n + 1, dtype=np.int64), pair_index, np.zeros((0, h)), np.zeros(0),
                       np.zeros((0, 6)), pair_index, np.zeros(n + 1, dtype=np.int64))
         self.position_at_build = self.position.copy()
+        self.list_near_planes()
         self.builds = 0
+
+    def list_near_planes(self) -> None:
+        """The planes each sphere may touch until the next list build (at position_at_build)."""
+        self.planes = self.planes[:5] + neighbours.near_planes(self.position_at_build, self.particles[8],
+                                                                self.planes[0], self.planes[1], self.plane_margin)
 
     def contact_pairs(self):
         """(pairs (M, 2) particle indices, normal force (M,) N) of touching particle pairs."""
@@ -506,6 +520,7 @@ class State:
         else:
             reverse_offsets, slot = np.zeros_like(offsets), partners.copy()
         self.pairs = self.pairs[:5] + (slot, reverse_offsets)
+        self.list_near_planes()
         self.builds = int(arrays["builds"])
 
     def count_contacts(self) -> int:
@@ -862,6 +877,7 @@ class Simulation:
                                                         offsets, found)
             state.meshes = (triangles, triangle_material, offsets, found, history, overlap)
         state.position_at_build[:] = state.position
+        state.list_near_planes()
         state.builds += 1
 
     # -- running -----------------------------------------------------------------
