@@ -8,6 +8,7 @@ A Python traceback is shown only with ``--debug``.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import signal
@@ -84,7 +85,12 @@ def command_run(args) -> int:
     for option, given in (("--scheduler", args.scheduler), ("--restart", args.restart), ("--workers", args.workers)):
         if given is not None and given is not False:
             warnings.warn(f"{option} ignored: {args.file} has no [sweep] table (a single run)")
-    scene = scenario.load_scene(args.file, args.set, args.out)
+    from minidem.engine import warmup
+
+    # on a fresh install the scene's kernel compiles in a helper while the check of
+    # overlapping spheres compiles the neighbour search here
+    scene = scenario.load_scene(args.file, args.set, args.out, while_checking=functools.partial(
+        warmup.kernel_beside_check, notify=None if args.quiet else _note))
     directory = scenario.prepare_output_directory(scene.output_directory, scenario.output_origin(args.out, scene.raw), args.file)
     sim = simulation.Simulation(scene, notify=None if args.quiet else _note)
     policy = checkpoint.Policy(directory, scene.checkpoint_interval, scene.checkpoint_wall_interval)
@@ -148,6 +154,25 @@ def _particle_counts(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"'{text}': expected particle counts >= 2 separated by commas, "
                                          "e.g. 2000,20000,200000,1000000")
     return counts
+
+
+def _run_steps(text: str) -> int:
+    """``--steps``: a whole number of steps >= 1."""
+    try:
+        steps = int(text.replace("_", ""))
+    except ValueError:
+        steps = 0
+    if steps < 1:
+        raise argparse.ArgumentTypeError(f"'{text}': expected a whole number of steps >= 1, e.g. 400")
+    return steps
+
+
+def _variants(text: str) -> tuple[str, ...]:
+    """``--variants``: the settle scene's start positions, comma-separated."""
+    names = tuple(part.strip() for part in text.split(","))
+    if not names or any(name not in ("lattice", "jitter") for name in names):
+        raise argparse.ArgumentTypeError(f"'{text}': expected lattice, jitter or lattice,jitter")
+    return names
 
 
 def _note(text: str) -> None:
@@ -351,13 +376,20 @@ def build_parser() -> argparse.ArgumentParser:
                            "writes docs/benchmarks.md and docs/figures/")
     bench.add_argument("--quick", action="store_true", help="a small subset (CI smoke run)")
     bench.add_argument("--only", action="append", choices=("single-impact", "work-precision", "model-only",
-                                                             "sweep-timing", "multi-particle", "compile"),
-                       help="run only this section (repeatable); multi-particle and compile (the compile time "
-                            "of each shipped law and combination) run only when named")
+                                                             "sweep-timing", "multi-particle", "multi-particle-scale",
+                                                             "compile"),
+                       help="run only this section (repeatable); multi-particle, multi-particle-scale (settle.md's "
+                            "200,000 and 1,000,000 spheres) and compile (the compile time of each shipped law and "
+                            "combination) run only when named")
     bench.add_argument("--sizes", type=_particle_counts, default=None, metavar="N,N,...",
-                       help="multi-particle: the particle counts of the settle scene (default 2000,20000); e.g. "
-                            "2000,20000,200000,1000000 adds the scale variants, which run fewer steps (at most "
-                            "2e9 particle-steps a run: 2,000 steps at 1,000,000) and take hours with LIGGGHTS")
+                       help="the particle counts of the settle scene: multi-particle (default 2000,20000), "
+                            "multi-particle-scale (default 200000,1000000: at most 2e9 particle-steps a run, 2,000 "
+                            "steps at 1,000,000; hours with LIGGGHTS)")
+    bench.add_argument("--variants", type=_variants, default=None, metavar="V,V",
+                       help="multi-particle sections: lattice, jitter or both (default lattice,jitter)")
+    bench.add_argument("--steps", type=_run_steps, default=None, metavar="STEPS",
+                       help="multi-particle sections: steps of every run (default settle.md's: 10,000, fewer "
+                            "at scale); the table says how many")
     bench.add_argument("--docs", type=Path, default=None, help="docs directory to write (default: the project's)")
     bench.set_defaults(handler=command_bench)
     return parser

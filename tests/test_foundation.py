@@ -297,6 +297,10 @@ def test_bench_sizes_are_checked_and_the_million_sphere_variant_fits_its_box():
     done = run_cli("bench", "--only", "multi-particle", "--sizes", "2000,lots")
     assert done.returncode == 2 and "Traceback" not in done.stderr
     assert "--sizes" in done.stderr and "2000,20000,200000,1000000" in done.stderr
+    for option, value, valid in (("--steps", "0", "e.g. 400"), ("--variants", "grid", "lattice,jitter")):
+        done = run_cli("bench", "--only", "multi-particle-scale", option, value)
+        assert done.returncode == 2 and "Traceback" not in done.stderr
+        assert option in done.stderr and valid in done.stderr
     # settle.md's largest variant: 1,000,000 spheres are 494 layers of 45 x 45 at 2.2 mm,
     # 1.088 m of centres, more than the scene file's 1 m box; the bench raises box and
     # fill as make_lattice.py does, and runs 2,000 steps (settle.md: "e.g. 2,000")

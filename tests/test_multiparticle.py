@@ -314,6 +314,40 @@ def test_history_survives_neighbour_list_rebuilds_bit_for_bit():
     assert np.array_equal(many.angular_velocity, once.angular_velocity)
 
 
+def test_spheres_far_from_a_plane_skip_it_and_nothing_changes(monkeypatch):
+    # Between list builds the kernel checks only the planes within radius + skin (+ reach)
+    # of each sphere at the last build (neighbours.near_planes): a sphere moves less than
+    # half the skin before the next build, so a skipped plane exerts no force. Against
+    # every plane for every sphere: the same bits, and most checks skipped.
+    from minidem.geometry import neighbours
+
+    base = DEEP_PILE[1:] + ["fill.0.count=100", "run.end_time=0.03"] + ONE_THREAD
+    listed = []
+    real = neighbours.near_planes
+
+    def counted(positions, radii, point, normal, margin):
+        offsets, planes = real(positions, radii, point, normal, margin)
+        listed.append((planes.shape[0], positions.shape[0] * point.shape[0]))
+        # brute force: every listed plane is within radius + margin, every other is not
+        distance = np.einsum("iwk,wk->iw", positions[:, None, :] - point[None], normal)
+        near = distance < radii[:, None] + (np.inf if margin is None else margin)
+        rows = np.repeat(np.arange(positions.shape[0]), np.diff(offsets))
+        assert np.array_equal(np.argwhere(near), np.column_stack([rows, planes]))
+        return offsets, planes
+
+    monkeypatch.setattr(neighbours, "near_planes", counted)
+    scene = scenario.load_scene("scenarios/bench/settle.toml", base)
+    skipping = simulation.Simulation(scene).run()
+    assert skipping.contacts > 50 and skipping.neighbour_builds > 1
+    assert max(n for n, _ in listed[1:]) < 0.5 * listed[0][1]  # after the first build: half the checks or fewer
+    monkeypatch.setattr(neighbours, "near_planes", lambda p, r, point, normal, margin: counted(p, r, point, normal,
+                                                                                              None))
+    every = simulation.Simulation(scenario.load_scene("scenarios/bench/settle.toml", base)).run()
+    assert np.array_equal(skipping.position, every.position)
+    assert np.array_equal(skipping.velocity, every.velocity)
+    assert np.array_equal(skipping.angular_velocity, every.angular_velocity)
+
+
 def test_last_good_copy_keeps_the_touching_contacts_rows_and_gives_every_bit_back():
     # The last good state (State.capture) keeps, of the per-contact histories and
     # reactions, only the rows that are not all zero. A contact that ends drops its

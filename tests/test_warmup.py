@@ -49,3 +49,72 @@ def test_the_engine_loads_what_the_helper_compiled(tmp_path):
     # and once they are cached, no helper is started
     again = subprocess.run([sys.executable, "-c", _STARTS_A_HELPER], env=env, capture_output=True, text=True)
     assert again.stdout.split() == ["False"], again.stderr
+
+
+_LOAD_WITH_HELPER = """
+import json, sys
+from minidem.engine import simulation, warmup
+from minidem.scene import scenario
+overrides = ["fill.0.count=20", "output.vtk=false", "run.end_time=2e-5"]
+scene = scenario.load_scene("scenarios/bench/settle.toml", overrides, while_checking=warmup.kernel_beside_check)
+started = warmup._KERNEL_HELPERS.get(id(scene)) is not None
+sim = simulation.Simulation(scene)
+result = sim.run()
+advance = sim.kernel.advance
+print(json.dumps({"started": started, "steps": result.steps,
+                  "advance": [sum(advance.stats.cache_hits.values()), sum(advance.stats.cache_misses.values())]}))
+"""
+
+
+def test_the_run_loads_the_kernel_the_helper_compiled_beside_the_check(tmp_path):
+    """On a fresh install `minidem run` starts a helper compiling the scene's kernel while
+    the check of overlapping spheres compiles the neighbour search; the run then loads
+    that kernel from the cache (a cache hit, no compilation of its own): the helper built
+    the same Simulation and the same argument types as the run."""
+    env = dict(os.environ, MINIDEM_CACHE_DIR=str(tmp_path / "minidem"), NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    run = subprocess.run([sys.executable, "-c", _LOAD_WITH_HELPER], env=env, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    found = json.loads(run.stdout.strip().splitlines()[-1])
+    if (os.cpu_count() or 1) < 2:  # no second CPU: no helper, the run compiles its kernel itself
+        assert not found["started"] and found["advance"][1] == 1, found
+        return
+    assert found["started"], found
+    # [cache hits, cache misses] of the kernel's advance in the run's process
+    assert found["advance"][0] >= 1 and found["advance"][1] == 0, found
+    assert found["steps"] == 1, found
+    # the next run finds the neighbour search cached: nothing to compile, no helper
+    again = subprocess.run([sys.executable, "-c", _LOAD_WITH_HELPER], env=env, capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr
+    assert not json.loads(again.stdout.strip().splitlines()[-1])["started"]
+
+
+_LAW_FROM_HELPER = """
+import json
+from minidem.engine import simulation
+from minidem.scene import scenario
+# one sphere on a plane: no neighbour search; a law with a couple (hm + epsd rolling
+# resistance), whose force function takes the longer argument list
+scene = scenario.load_scene("scenarios/oblique.toml", ['contact.law="hm"', 'contact.rolling="epsd"',
+                                                        "contact.rolling_friction=0.1"])
+sim = simulation.Simulation(scene)
+sim.run()
+force = sim.law.force
+print(json.dumps({"couples": bool(sim.law.couples), "force": [sum(force.stats.cache_hits.values()),
+                                                              sum(force.stats.cache_misses.values())]}))
+"""
+
+
+def test_the_kernel_loads_the_law_the_helper_compiled(tmp_path):
+    """On a fresh install the helper compiles the law's force function first, for the
+    argument types the kernel passes it (simulation.force_signature), and the kernel's
+    compilation waits for it: in the run's process the law is a cache hit, never compiled."""
+    env = dict(os.environ, MINIDEM_CACHE_DIR=str(tmp_path / "minidem"), NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    run = subprocess.run([sys.executable, "-c", _LAW_FROM_HELPER], env=env, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    found = json.loads(run.stdout.strip().splitlines()[-1])
+    assert found["couples"], found
+    hits, misses = found["force"]
+    if (os.cpu_count() or 1) < 2:  # no helper: the kernel compiles the law itself
+        assert misses == 1, found
+    else:
+        assert hits >= 1 and misses == 0, found

@@ -338,7 +338,8 @@ class RunResult:
 # argument tuple by position (None: fixed by the scene, not saved)
 _STATE_ARRAYS = ("position", "velocity", "angular_velocity", "force", "torque", "position_at_build")
 _STATE_TUPLES = {
-    "planes": (None, None, None, "plane_history", "plane_overlap"),
+    # the planes near each sphere follow from the position at the last build (State.restore)
+    "planes": (None, None, None, "plane_history", "plane_overlap", None, None),
     "cylinders": (None, None, None, None, None, "cylinder_history", "cylinder_overlap"),
     "meshes": (None, None, "mesh_offsets", "mesh_candidates", "mesh_history", "mesh_overlap"),
     # the reactions' slots and the transposed offsets follow from the list (State.restore
@@ -466,6 +467,13 @@ class State:
             plane_overlap = np.minimum(plane_overlap, 0.0)
         self.planes = (scene.wall_point, scene.wall_normal, scene.wall_material,
                        np.zeros((n, scene.wall_point.shape[0], h)), plane_overlap)
+        # The kernel checks only the planes near each sphere (neighbours.near_planes), listed
+        # at each list build. Every plane for a scene without list builds, and for the
+        # tracked (serial) kernel: its contact statistics interpolate each plane's touch and
+        # separation times from the overlap of the step before, which a plane skipped since
+        # the last build would hold stale.
+        self.plane_margin = sim.skin + sim.max_reach if sim.parallel and (sim.pairs or walls.triangles.shape[0]) \
+            else None
         n_cylinders = walls.cylinder_base.shape[0]
         self.cylinders = (walls.cylinder_base, walls.cylinder_axis, walls.cylinder_radius, walls.cylinder_length,
                           walls.cylinder_material, np.zeros((n, n_cylinders, h)), np.full((n, n_cylinders), -1.0))
@@ -478,7 +486,13 @@ class State:
         self.pairs = (np.zeros(n + 1, dtype=np.int64), pair_index, np.zeros((0, h)), np.zeros(0),
                       np.zeros((0, 6)), pair_index, np.zeros(n + 1, dtype=np.int64))
         self.position_at_build = self.position.copy()
+        self.list_near_planes()
         self.builds = 0
+
+    def list_near_planes(self) -> None:
+        """The planes each sphere may touch until the next list build (at position_at_build)."""
+        self.planes = self.planes[:5] + neighbours.near_planes(self.position_at_build, self.particles[8],
+                                                                self.planes[0], self.planes[1], self.plane_margin)
 
     def contact_pairs(self):
         """(pairs (M, 2) particle indices, normal force (M,) N) of touching particle pairs."""
@@ -560,6 +574,7 @@ class State:
         else:
             reverse_offsets, slot = np.zeros_like(offsets), partners.copy()
         self.pairs = self.pairs[:5] + (slot, reverse_offsets)
+        self.list_near_planes()
         self.builds = int(arrays["builds"])
 
     def count_contacts(self) -> int:
@@ -927,6 +942,7 @@ class Simulation:
             state.meshes = (triangles, triangle_material, offsets, found, history, overlap)
         # a new array, not written in place: the last good state may hold the old one (_SHARED)
         state.position_at_build = state.position.copy()
+        state.list_near_planes()
         state.builds += 1
         release_free_memory()
 
@@ -951,14 +967,19 @@ class Simulation:
         """
         scene, k = self.scene, self.kernel
         threads_before = numba.get_num_threads()
-        threads = min(scene.threads or numba.config.NUMBA_NUM_THREADS, numba.config.NUMBA_NUM_THREADS)
-        loop_threads = threads if self.parallel and scene.n_particles >= PARALLEL_MIN_PARTICLES else 1
+        loop_threads = self.loop_threads()
         # every parallel loop, the neighbour-list builds too, runs on the particle loops' count
         numba.set_num_threads(loop_threads)
         try:
             return _RunLoop(self, chunk_steps, progress, on_frame, loop_threads, checkpoints, resume_from).run()
         finally:
             numba.set_num_threads(threads_before)
+
+    def loop_threads(self) -> int:
+        """How many threads the run's particle loops use (one below PARALLEL_MIN_PARTICLES)."""
+        scene = self.scene
+        threads = min(scene.threads or numba.config.NUMBA_NUM_THREADS, numba.config.NUMBA_NUM_THREADS)
+        return threads if self.parallel and scene.n_particles >= PARALLEL_MIN_PARTICLES else 1
 
     def frame_interval(self, end_time: float) -> float | None:
         scene = self.scene
@@ -1128,15 +1149,22 @@ class _RunLoop:
                 self.on_frame.restore(meta["frames_series"], loop["frames"])
         meshes = state.meshes[0].shape[0] > 0
         # on a fresh install the engine's shared functions compile in a helper process
-        # beside the kernel (nothing is started when they are cached)
-        helper = warmup.start(sim.pairs, meshes)
+        # beside the kernel (nothing is started when they are cached); or, when a helper
+        # is compiling this scene's kernel already (started by `minidem run` beside the
+        # scene's check), this process compiles them meanwhile
+        kernel_helper = warmup.kernel_helper(self.scene)
+        helper = warmup.start(sim.pairs, meshes, sim.law) if kernel_helper is None else kernel_helper
         try:
             # the one compilation of this kernel, reported against the law that caused it; a
             # user waiting for it is told what it is
             compiling = _notice_if_slow(sim.notify, f"compiling the kernel of law '{sim.law.name}' for this scene "
                                         f"shape; it is cached in {cache_directory()} for later runs")
             with compiling:
-                self.compile_kernel()
+                if kernel_helper is not None:
+                    warmup.compile_shared(sim.pairs, meshes)
+                    kernel_helper.wait()
+                with helper.law_compiled(sim.law.force):
+                    self.compile_kernel()
                 helper.wait()
                 if self.resume_from is None and (sim.pairs or meshes):
                     sim.rebuild(state)
@@ -1480,6 +1508,14 @@ _FORCE_SIGNATURE = (numba.types.Array(numba.types.float64, 1, "C"), *(numba.type
 
 _ROW, _FLOAT, _VECTOR = (numba.types.Array(numba.types.float64, 1, "C"), numba.types.float64,
                          numba.types.UniTuple(numba.types.float64, 3))
+# a law with a couple (law.couples) also takes the relative spin, the normal and dt
+_COUPLE_FORCE_SIGNATURE = (*_FORCE_SIGNATURE, _VECTOR, _VECTOR, _FLOAT)
+
+
+def force_signature(law: laws.ContactLaw) -> tuple:
+    """The argument types the kernel passes the law's force function."""
+    return _COUPLE_FORCE_SIGNATURE if law.couples else _FORCE_SIGNATURE
+
 # the argument types a part's function is called with (minidem.contact.laws.PART_ARGUMENTS)
 # and how many numbers it returns (0: one number)
 _PART_SIGNATURES = {

@@ -15,6 +15,18 @@ guard's survey and the kinetic energy) in the first run of scenarios/oblique.tom
 scenarios/settle.toml, whose ``build_pairs`` is already compiled by then: the scene's
 check for overlapping spheres at t = 0 needs it before anything else (2-core AMD EPYC).
 
+A scene with more than one sphere needs the neighbour search before anything else, to
+check that no spheres overlap at t = 0 (``minidem.scene.scenario``): on a fresh install
+that is ~4 s of compiling (``build_pairs``, parallel) that the kernel's own ~6 s would
+follow. ``minidem run`` therefore starts the helper earlier, around that check
+(:func:`kernel_beside_check`), with the other job: it compiles the scene's kernel (the
+scene sent to it pickled, its ``Simulation`` and the types of its ``advance`` built as
+the run builds them), while this process compiles the neighbour search for the check and
+then the other shared functions itself, and loads the kernel from the cache when the
+helper is done (:func:`kernel_helper`); the guard's two functions go to whichever of the
+two is free first. First run of scenarios/settle.toml: the two
+compilations side by side instead of one after the other.
+
 Only the wall time changes (the CPU time grows by the helper's own start, ~0.5 s): the
 same functions are compiled for the same argument types and the run loads the same
 machine code it would have compiled. A helper that cannot start, fails or compiled
@@ -25,7 +37,11 @@ functions are cached already (every run after the first), nor on a one-CPU machi
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import os
+import pickle
+import select
 import subprocess
 import sys
 
@@ -50,19 +66,22 @@ def _dispatchers(pairs: bool, meshes: bool) -> dict:
 
 
 def _cached(dispatcher) -> bool:
-    """Whether numba's cache has an index for this function (compiled by an earlier run);
-    True when that cannot be told (no helper then)."""
+    """Whether numba's cache holds machine code of this function (compiled by an earlier
+    run, for its current source): an index with entries (the kernel's compile_kernel
+    empties a law's index when a new kernel is built against it); True when that cannot be
+    told (no helper then)."""
     try:
-        return os.path.exists(dispatcher._cache._cache_file._index_path)
+        return bool(dispatcher._cache._cache_file._load_index())
     except AttributeError:
         return True
+    except Exception:  # an unreadable index: numba would compile it anew
+        return False
 
 
 def compile_shared(pairs: bool, meshes: bool) -> None:
     """Compile (into numba's cache) the shared functions a scene with pairs or meshes
     needs, by calling them on two particles with the argument types the engine passes
     (C-contiguous float64 and int64 arrays, a float skin, an int count)."""
-    from minidem.engine import blowup, integrate
     from minidem.engine.simulation import pair_index_type
     from minidem.geometry import neighbours
 
@@ -83,16 +102,74 @@ def compile_shared(pairs: bool, meshes: bool) -> None:
         offsets, found = neighbours.mesh_candidates(position, scalar, 0.5, triangles)
         neighbours.carry_history(np.zeros(n + 1, dtype=np.int64), index, history, overlap, offsets, found,
                                  np.zeros((found.shape[0], h)))
-    blowup.survey(position, vector, vector, vector, vector, scalar, scalar, position, np.zeros(3), np.zeros(3),
-                  np.zeros(3))
-    integrate.kinetic_energy(scalar, scalar, vector, vector)
+    compile_guard()
+
+
+def compile_guard(reverse: bool = False) -> None:
+    """Compile (into numba's cache) the blow-up guard's survey and the kinetic energy
+    (``reverse``: in the other order, for a second process doing the same, see
+    :func:`compile_kernel_of_scene`)."""
+    from minidem.engine import blowup, integrate
+
+    position, vector, scalar = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), np.zeros((2, 3)), np.ones(2)
+    calls = [lambda: blowup.survey(position, vector, vector, vector, vector, scalar, scalar, position, np.zeros(3),
+                                   np.zeros(3), np.zeros(3)),
+             lambda: integrate.kinetic_energy(scalar, scalar, vector, vector)]
+    for call in reversed(calls) if reverse else calls:
+        call()
 
 
 class Helper:
     """A helper process compiling the shared functions (see the module docstring)."""
 
-    def __init__(self, process: subprocess.Popen):
+    def __init__(self, process: subprocess.Popen | None, law_first: bool = False):
         self.process = process
+        # it compiles the law's force function first and then says so on its standard output
+        self.law_pending = law_first and process is not None
+
+    def wait_for_law(self) -> None:
+        """Until the helper has compiled the law's force function (or ended)."""
+        if self.law_pending:
+            self.law_pending = False
+            try:
+                # "law", or nothing at its end; at most WAIT_LIMIT_S
+                if select.select([self.process.stdout], [], [], WAIT_LIMIT_S)[0]:
+                    self.process.stdout.readline()
+            except (OSError, ValueError):
+                pass
+
+    @contextlib.contextmanager
+    def law_compiled(self, force):
+        """Around the kernel's compilation: when the kernel's typing reaches the law's force
+        function (``force``, a numba dispatcher, compiled on its own and linked into the
+        kernel), first wait for the helper compiling it, so that it is loaded from the cache
+        instead of compiled a second time."""
+        if not self.law_pending or not hasattr(force, "compile"):
+            yield
+            return
+        plain_compile = force.compile
+
+        def compile_after_helper(sig):
+            self.wait_for_law()
+            return plain_compile(sig)
+
+        force.compile = compile_after_helper
+        try:
+            yield
+        finally:
+            del force.compile
+
+    def stop(self) -> None:
+        """End a helper whose work is no longer wanted (the run will not happen)."""
+        if self.process is not None and self.process.poll() is None:
+            self.process.kill()
+            self.process.wait()
+        self._release()
+
+    def _release(self) -> None:
+        if self.process is not None and self.process.stdout is not None:
+            self.process.stdout.close()
+        self.process, self.law_pending = None, False
 
     def wait(self) -> None:
         """Until the helper has finished (at most WAIT_LIMIT_S; a helper still running
@@ -103,21 +180,129 @@ class Helper:
             self.process.wait(timeout=WAIT_LIMIT_S)
         except subprocess.TimeoutExpired:
             pass
-        self.process = None
+        self._release()
 
 
-def start(pairs: bool, meshes: bool) -> Helper:
-    """Start a helper when some shared function the scene needs is not cached yet and
-    there is a second CPU to run it on; otherwise a Helper that waits for nothing."""
-    if (os.cpu_count() or 1) < 2 or numba.config.DISABLE_JIT:
-        return Helper(None)
-    if all(_cached(dispatcher) for dispatcher in _dispatchers(pairs, meshes).values()):
-        return Helper(None)
-    code = f"from minidem.engine import warmup; warmup.compile_shared({bool(pairs)}, {bool(meshes)})"
+def _spawn(code: str, stdin_bytes: bytes | None = None, law_first: bool = False) -> Helper:
+    """A helper running ``code`` in this Python, with the same environment, so the same
+    caches (MINIDEM_CACHE_DIR, NUMBA_CACHE_DIR), and ``stdin_bytes`` on its standard input."""
     try:
-        # the same environment, so the same caches (MINIDEM_CACHE_DIR, NUMBA_CACHE_DIR)
-        process = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.DEVNULL,
-                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        process = subprocess.Popen([sys.executable, "-c", code],
+                                   stdin=subprocess.DEVNULL if stdin_bytes is None else subprocess.PIPE,
+                                   stdout=subprocess.PIPE if law_first else subprocess.DEVNULL,
+                                   stderr=subprocess.DEVNULL)
     except OSError:
         return Helper(None)
-    return Helper(process)
+    if stdin_bytes is not None:
+        try:
+            with process.stdin:
+                process.stdin.write(stdin_bytes)
+        except OSError:  # it died already: the run compiles everything itself
+            pass
+    return Helper(process, law_first)
+
+
+def _second_cpu() -> bool:
+    return (os.cpu_count() or 1) >= 2 and not numba.config.DISABLE_JIT
+
+
+def start(pairs: bool, meshes: bool, law=None) -> Helper:
+    """Start a helper when the law's force function (``law``, a ContactLaw) or some shared
+    function the scene needs is not cached yet and there is a second CPU to run it on;
+    otherwise a Helper that waits for nothing."""
+    if not _second_cpu():
+        return Helper(None)
+    law_first = law is not None and hasattr(law.force, "compile") and not _cached(law.force)
+    shared = not all(_cached(dispatcher) for dispatcher in _dispatchers(pairs, meshes).values())
+    if not law_first and not shared:
+        return Helper(None)
+    return _spawn(f"from minidem.engine import warmup; warmup.compile_for_run("
+                  f"{law.name if law_first else None!r}, {shared}, {bool(pairs)}, {bool(meshes)})", law_first=law_first)
+
+
+def compile_for_run(law_name: str | None, shared: bool, pairs: bool, meshes: bool) -> None:
+    """The helper's side of :func:`start`: the law's force function for the types the
+    kernel passes it (then "law" on standard output: the run waits for that line before
+    it would compile it itself), then the shared functions."""
+    if law_name is not None:
+        try:
+            from minidem.contact import laws
+            from minidem.engine.simulation import force_signature
+
+            law = laws.registry().entry(law_name).law
+            law.force.compile(force_signature(law))
+        finally:
+            print("law", flush=True)  # compiled or not: the run must not wait any longer
+    if shared:
+        compile_shared(pairs, meshes)
+
+
+# scenes whose kernel a helper compiles (id -> (scene, helper)), until their run takes it
+_KERNEL_HELPERS: dict[int, tuple] = {}
+
+
+@contextlib.contextmanager
+def kernel_beside_check(scene, notify=None):
+    """Around the geometry check of a scene ``minidem run`` is about to run (the
+    ``while_checking`` of ``minidem.scene.scenario.build_scene``): when the check must
+    compile the neighbour search first (a fresh install), a helper compiles the scene's
+    kernel meanwhile. Ended if the check refuses the scene (no run follows).
+    ``notify(text)``: told what is compiled if that takes more than SLOW_NOTICE_S."""
+    helper = Helper(None)
+    if scene.n_particles > 1 and _second_cpu():
+        from minidem.geometry import neighbours
+
+        if not _cached(neighbours.build_pairs):
+            try:
+                sent = pickle.dumps(scene, protocol=pickle.HIGHEST_PROTOCOL)
+            except Exception:  # a scene that cannot be sent: the run compiles its kernel itself
+                sent = None
+            if sent is not None:
+                helper = _spawn("from minidem.engine import warmup; warmup.compile_kernel_of_scene()", sent)
+    try:
+        if helper.process is None:
+            yield
+        else:
+            from minidem.engine.simulation import _notice_if_slow, cache_directory
+
+            with _notice_if_slow(notify, "compiling the neighbour search for the check of overlapping spheres, "
+                                 "and beside it the scene's kernel; both are cached in "
+                                 f"{cache_directory()} for later runs"):
+                yield
+    except BaseException:
+        helper.stop()
+        raise
+    if helper.process is not None:
+        _KERNEL_HELPERS[id(scene)] = (scene, helper)
+
+
+@atexit.register
+def _stop_unclaimed() -> None:
+    """A process leaving before its run (bad input found after the check) ends its helpers."""
+    while _KERNEL_HELPERS:
+        _KERNEL_HELPERS.popitem()[1][1].stop()
+
+
+def kernel_helper(scene) -> Helper | None:
+    """The helper compiling this scene's kernel (:func:`kernel_beside_check`), or None;
+    the run that asks takes it."""
+    found = _KERNEL_HELPERS.pop(id(scene), None)
+    if found is None or found[0] is not scene:
+        return None
+    return found[1]
+
+
+def compile_kernel_of_scene() -> None:
+    """The helper's side of :func:`kernel_beside_check`: the scene from standard input,
+    its Simulation as ``minidem run`` builds it, and the kernel's ``advance`` compiled for
+    the types of the arguments the run passes (into the caches the run loads it from)."""
+    from minidem.engine import simulation
+
+    scene = pickle.load(sys.stdin.buffer)
+    sim = simulation.Simulation(scene)
+    loop = simulation._RunLoop(sim, 1, None, None, sim.loop_threads(), None, None)
+    loop.compile_kernel()
+    # then the guard's functions, unless the run has compiled them meanwhile (a call loads
+    # them from the cache then), in the other order than the run's: whichever process is
+    # free first takes them
+    compile_guard(reverse=True)

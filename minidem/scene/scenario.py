@@ -8,6 +8,7 @@ drift apart. Nothing is compiled or run here.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import difflib
@@ -676,15 +677,21 @@ def _check_kind_keys(table: Any, section: str, kind: Any, where: str, errors: _E
                        f"{selector} = \"{kind}\": {', '.join(by_kind[kind])}{hint}")
 
 
-def load_scene(path: str | Path, overrides: list[str] = (), output_directory: str | Path | None = None) -> Scene:
+def load_scene(path: str | Path, overrides: list[str] = (), output_directory: str | Path | None = None,
+               while_checking=None) -> Scene:
     data = apply_overrides(read_toml(path), list(overrides))
-    return build_scene(data, str(path), output_directory)
+    return build_scene(data, str(path), output_directory, while_checking)
 
 
-def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -> Scene:
+def build_scene(data: dict, source: str = "<scenario>", output_directory=None, while_checking=None) -> Scene:
     """Validate a scenario (the dict a TOML file parses to) and build its Scene. Every
     problem is collected with its key and reported at once (ScenarioError); then what
-    the values imply (masses, energies) and the initial geometry are checked."""
+    the values imply (masses, energies) and the initial geometry are checked.
+
+    ``while_checking(scene)``: a context manager entered around the geometry check (the
+    scene is complete then, and the check of overlapping spheres may have to compile the
+    neighbour search first); ``minidem run`` compiles the scene's kernel beside it on a
+    fresh install (``minidem.engine.warmup.kernel_beside_check``)."""
     errors = _Errors(source)
     for section in data:
         if section not in SCHEMA and section != "sweep":
@@ -752,7 +759,8 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None) -
     from minidem.scene import derived
 
     derived.check_scene(scene)  # masses, inertias, energies: what the values imply
-    _check_geometry(scene)
+    with while_checking(scene) if while_checking is not None else contextlib.nullcontext():
+        _check_geometry(scene)
     return scene
 
 

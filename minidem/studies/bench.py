@@ -540,12 +540,14 @@ def section_sweep(timing: dict, command: str, load=None) -> str:
     return "\n".join(lines)
 
 
-SECTION_ORDER = ("single-impact", "work-precision", "model-only", "sweep-timing", "multi-particle", "compile")
+SECTION_ORDER = ("single-impact", "work-precision", "model-only", "sweep-timing", "multi-particle",
+                 "multi-particle-scale", "compile")
 _HEADINGS = {"single-impact": "## Single impact: engine error against the reference",
              "work-precision": "## Work-precision (single impact)",
              "model-only": "## Model only what a scene needs",
              "sweep-timing": "## Paper sweep timing",
              "multi-particle": "## Multi-particle throughput",
+             "multi-particle-scale": "## Multi-particle throughput at scale",
              "compile": "## Compile time of each contact model"}
 
 
@@ -568,15 +570,21 @@ def update_sections(path: Path, sections: dict[str, str]) -> None:
     atomic_write(path, text)
 
 
-def run(quick: bool = False, docs: Path = DOCS, sections=ALL_SECTIONS, echo=print, sizes=None) -> dict:
-    """``sizes``: the particle counts of the multi-particle section (default
-    bench_multi.SIZES)."""
+def run(quick: bool = False, docs: Path = DOCS, sections=ALL_SECTIONS, echo=print, sizes=None, variants=None,
+        steps=None) -> dict:
+    """``sizes``, ``variants``, ``steps``: of the multi-particle sections (defaults
+    bench_multi.SIZES or SCALE_SIZES, both variants, settle.md's steps)."""
     settings = QUICK if quick else FULL
     command = "minidem bench" + (" --quick" if quick else "")
     if tuple(sections) != ALL_SECTIONS:
         command += "".join(f" --only {s}" for s in sections)
     if sizes:
         command += " --sizes " + ",".join(str(n) for n in sizes)
+    if variants:
+        command += " --variants " + ",".join(variants)
+    if steps:
+        command += f" --steps {steps}"
+    variants = tuple(variants) if variants else None
     results, texts = {}, {}
     if "single-impact" in sections:
         echo(f"bench: engine against the reference, {len(settings['angles'])} angles x {len(reference.LAWS)} laws")
@@ -604,7 +612,15 @@ def run(quick: bool = False, docs: Path = DOCS, sections=ALL_SECTIONS, echo=prin
 
         echo("bench: multi-particle throughput (settle scene, minidem and LIGGGHTS interleaved)")
         texts["multi-particle"] = bench_multi.run(1 if quick else 3, command, stamp, echo,
-                                                  sizes=tuple(sizes) if sizes else bench_multi.SIZES)
+                                                  sizes=tuple(sizes) if sizes else bench_multi.SIZES,
+                                                  variants=variants or bench_multi.VARIANTS, steps=steps)
+    if "multi-particle-scale" in sections:
+        from minidem.studies import bench_multi
+
+        echo("bench: multi-particle throughput at scale (settle.md's scale variants, LIGGGHTS interleaved)")
+        texts["multi-particle-scale"] = bench_multi.run_scale(
+            1 if quick else 3, command, stamp, echo, sizes=tuple(sizes) if sizes else bench_multi.SCALE_SIZES,
+            variants=variants or bench_multi.VARIANTS, steps=steps)
     if "compile" in sections:
         from minidem.studies import bench_compile
 
@@ -624,5 +640,5 @@ def run(quick: bool = False, docs: Path = DOCS, sections=ALL_SECTIONS, echo=prin
 
 def command(args) -> int:
     run(quick=args.quick, docs=args.docs or DOCS, sections=tuple(args.only) if args.only else ALL_SECTIONS,
-        sizes=args.sizes)
+        sizes=args.sizes, variants=args.variants, steps=args.steps)
     return 0

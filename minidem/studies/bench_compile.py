@@ -155,8 +155,10 @@ def section_scenes(rows: list[dict]) -> str:
              "empty folders): every kernel and engine function the scene needs is compiled. 'Warm' is the "
              "same command again on the caches the first run filled (the run itself, loading included). "
              f"Medians of {rows[0]['rounds'] if rows else 0} round(s), scenes interleaved; CPU = user + "
-             "system time of the process and of the helper process that compiles the engine's shared "
-             "functions beside the kernel on a fresh install (minidem/engine/warmup.py). The difference "
+             "system time of the process and of its helper process on a fresh install "
+             "(minidem/engine/warmup.py: the law's force function and the engine's shared functions beside "
+             "the kernel; for a scene with more than one sphere, the kernel itself beside the neighbour "
+             "search that the check for overlapping spheres needs first). The difference "
              "cold - warm is what compiling costs.",
              "", "| scene | cold wall s | cold CPU s | warm wall s | warm CPU s |", "|---|---|---|---|---|"]
     for row in rows:

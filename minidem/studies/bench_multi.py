@@ -1,8 +1,10 @@
 """``minidem bench --only multi-particle``: throughput of the "settle" scene beside LIGGGHTS.
 
 The scene is ../shared/bench/settle.md (``scenarios/bench/settle.toml``): variants "lattice" and
-"jitter", N = 2,000 and 20,000 (``--sizes`` adds the scale variants, 200,000 and
-1,000,000: fewer steps, ``steps_for``), 10,000 steps of 2e-5 s. Every run is a fresh process, so
+"jitter", N = 2,000 and 20,000, 10,000 steps of 2e-5 s. ``--only multi-particle-scale`` runs
+settle.md's scale variants, N = 200,000 and 1,000,000, with fewer steps (``steps_for``), in
+a section of its own, so the two are measured in sittings of their own length (``--sizes``,
+``--variants`` and ``--steps`` choose). Every run is a fresh process, so
 its peak memory is that process's own (``ru_maxrss`` from ``os.wait4``). minidem runs on
 one and two threads; LIGGGHTS 3.8 (``liggghts`` on the PATH, Debian's package) runs the
 shared input script ``bench/liggghts/in.settle`` on one core, interleaved with minidem's
@@ -34,6 +36,8 @@ STEPS, DT = 10_000, 2e-5
 # many particle-steps: 10,000 steps up to 200,000 particles, 2,000 at 1,000,000
 MOST_PARTICLE_STEPS = 2_000_000_000
 SIZES = (2_000, 20_000)
+SCALE_SIZES = (200_000, 1_000_000)
+VARIANTS = ("lattice", "jitter")
 LAYER_SITES, SPACING, FIRST_CENTRE = 45 * 45, 2.2e-3, 1.1e-3  # the lattice of settle.md
 JITTER = {"lattice": 0.0, "jitter": 9e-5}  # m, as in settle.md and make_lattice.py
 
@@ -91,9 +95,10 @@ def _run_measured(argv, cwd=None) -> tuple[str, str, float]:
     return done.stdout, done.stderr, int(peak.split("=")[1]) / 1024.0
 
 
-def steps_for(n: int) -> int:
-    """Steps of a run of N particles: 10,000 (settle.md), fewer for the scale variants."""
-    return min(STEPS, MOST_PARTICLE_STEPS // n)
+def steps_for(n: int, steps: int | None = None) -> int:
+    """Steps of a run of N particles: ``steps`` when given (``--steps``), else 10,000
+    (settle.md), fewer for the scale variants."""
+    return steps if steps else min(STEPS, MOST_PARTICLE_STEPS // n)
 
 
 def box_height(n: int) -> float | None:
@@ -156,10 +161,12 @@ def import_baseline() -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def measure(repeats: int = 3, sizes=SIZES, variants=("lattice", "jitter"), thread_counts=(1, 2),
-            echo=print) -> dict:
+def measure(repeats: int = 3, sizes=SIZES, variants=VARIANTS, thread_counts=(1, 2), echo=print,
+            steps: int | None = None, extras: bool = True) -> dict:
+    """``extras``: also the neighbour-list build against N and the VTK output overhead (the
+    default section; the scale section measures the runs alone)."""
     have_liggghts = liggghts_executable() is not None and (SHARED_BENCH / "in.settle").exists()
-    results = {"cases": {}, "liggghts": have_liggghts}
+    results = {"cases": {}, "steps": {}, "liggghts": have_liggghts}
     with tempfile.TemporaryDirectory(prefix="minidem-bench-") as tmp:
         folder = Path(tmp)
         echo("bench: warm-up (compile or load the settle kernel)")
@@ -175,20 +182,23 @@ def measure(repeats: int = 3, sizes=SIZES, variants=("lattice", "jitter"), threa
                 pinned = n >= simulation.PARALLEL_MIN_PARTICLES
                 case = {"liggghts": [], **{f"minidem_{t}": [] for t in thread_counts},
                         **({"minidem_2_pinned": []} if pinned else {})}
-                steps = steps_for(n)
+                n_steps = steps_for(n, steps)
                 for repeat in range(repeats):
                     # interleaved, so a change in the machine's load hits every code alike
                     if have_liggghts:
-                        case["liggghts"].append(run_liggghts(data, steps))
+                        case["liggghts"].append(run_liggghts(data, n_steps))
                     for t in thread_counts:
-                        case[f"minidem_{t}"].append(run_minidem(n, jitter, t, steps))
+                        case[f"minidem_{t}"].append(run_minidem(n, jitter, t, n_steps))
                     if pinned:
-                        case["minidem_2_pinned"].append(run_minidem(n, jitter, "2pinned", steps))
+                        case["minidem_2_pinned"].append(run_minidem(n, jitter, "2pinned", n_steps))
                     echo(f"bench: {variant} N={n} repeat {repeat + 1}/{repeats}: "
                          + ", ".join(f"{k} {v[-1]['rate']:.3g}/s" for k, v in case.items() if v))
                 results["cases"][(variant, n)] = case
+                results["steps"][n] = n_steps
         results["load"] = (load, os.getloadavg())
         results["baseline"] = import_baseline()
+        if not extras:
+            return results
         echo("bench: neighbour-list build against N")
         from minidem.geometry.neighbours import benchmark_scaling
 
@@ -253,11 +263,12 @@ def per_particle_memory(cases, fixed_mib) -> str:
             f"(a difference under {RESOLUTION_MIB} MiB is not resolved): " + "; ".join(parts) + ".")
 
 
-def section(results: dict, command: str, stamp) -> str:
+def section(results: dict, command: str, stamp, heading: str = "## Multi-particle throughput") -> str:
     cases = results["cases"]
     load_start, load_end = results["load"]
+    steps = ", ".join(f"{count:,} steps at N = {n:,}" for n, count in sorted(results["steps"].items()))
     lines = [
-        "## Multi-particle throughput",
+        heading,
         "",
         stamp(command),
         f"Load average (1, 5, 15 min) at the start {', '.join(f'{x:.2f}' for x in load_start)}, at the end "
@@ -265,8 +276,8 @@ def section(results: dict, command: str, stamp) -> str:
         "ratios, measured interleaved, are the useful part).",
         "",
         "Scene: `scenarios/bench/settle.toml` = ../shared/bench/settle.md (Hertz + Mindlin no-slip with history, "
-        "e = 0.5, mu = 0.5, box of 5 planes, dt = 2e-5 s, 10,000 steps (N above 200,000: "
-        f"{MOST_PARTICLE_STEPS:.0e} particle-steps a run, e.g. 2,000 steps at 1,000,000), skin 0.5 mm; start positions identical "
+        "e = 0.5, mu = 0.5, box of 5 planes, dt = 2e-5 s, "
+        f"{steps}, skin 0.5 mm; start positions identical "
         "to the LIGGGHTS generator's). Each run is a fresh process; time = the step loop (set-up excluded; "
         "LIGGGHTS: its 'Loop time'); particle-steps/s = N x steps / time; medians of "
         f"{len(next(iter(cases.values()))['minidem_1'])} runs; peak memory = the process's ru_maxrss. "
@@ -285,14 +296,16 @@ def section(results: dict, command: str, stamp) -> str:
     for (variant, n), case in cases.items():
         lig = _median(case["liggghts"], "rate")
         one, two = _median(case["minidem_1"], "rate"), _median(case.get("minidem_2", []), "rate")
+        two_text = f"{two:.3g} | {two / one:.2f}x" if case.get("minidem_2") else "- | -"
         last = case["minidem_1"][-1]
         on_two = [r["thread_steps"].get("2", 0) / max(1, r["steps"]) for r in case.get("minidem_2", [])]
         share = ", ".join(f"{100 * x:.0f} %" for x in on_two) or "-"
         lines.append(
-            f"| {variant} | {n:,} | {lig:.3g} | {one:.3g} | {one / lig:.2f}x | {two:.3g} | {two / one:.2f}x | {share} | "
+            f"| {variant} | {n:,} | {lig:.3g} | {one:.3g} | {one / lig:.2f}x | {two_text} | {share} | "
             f"{pinned_text(case, one)} | "
             f"{_median(case['liggghts'], 'peak_rss_mib'):.0f} / {_median(case['minidem_1'], 'peak_rss_mib'):.0f} / "
-            f"{_median(case.get('minidem_2', []), 'peak_rss_mib'):.0f} | {last['mean_z_m'] * 1e3:.3f}, "
+            f"{_median(case.get('minidem_2') or case.get('minidem_2_pinned', []), 'peak_rss_mib'):.0f} | "
+            f"{last['mean_z_m'] * 1e3:.3f}, "
             f"{last['kinetic_energy_j']:.2g}, {last['builds']} |")
     cpu_lines = []
     for (variant, n), case in cases.items():
@@ -317,6 +330,8 @@ def section(results: dict, command: str, stamp) -> str:
         per_particle_memory(cases, base.get("first compiled call", float("nan"))),
         "",
     ]
+    if "neighbours" not in results:  # the scale section: the runs alone
+        return "\n".join(lines)
     scaling = results["neighbours"]
     lines += ["Neighbour-list build (`minidem.geometry.neighbours.build_pairs`, random packings at a fixed volume "
               "fraction, one thread, median of 3): cost per particle is flat, i.e. linear in N:", "",
@@ -330,5 +345,14 @@ def section(results: dict, command: str, stamp) -> str:
     return "\n".join(lines)
 
 
-def run(repeats: int, command: str, stamp, echo=print, sizes=SIZES) -> str:
-    return section(measure(repeats=repeats, sizes=sizes, echo=echo), command, stamp)
+def run(repeats: int, command: str, stamp, echo=print, sizes=SIZES, variants=VARIANTS, steps=None) -> str:
+    return section(measure(repeats=repeats, sizes=sizes, variants=variants, echo=echo, steps=steps), command, stamp)
+
+
+def run_scale(repeats: int, command: str, stamp, echo=print, sizes=SCALE_SIZES, variants=VARIANTS,
+              steps=None) -> str:
+    """settle.md's scale variants: one thread, two threads pinned (every chunk on two:
+    their speed-up, issue 15 target 4) and LIGGGHTS, no extras."""
+    results = measure(repeats=repeats, sizes=sizes, variants=variants, thread_counts=(1,), echo=echo, steps=steps,
+                      extras=False)
+    return section(results, command, stamp, heading="## Multi-particle throughput at scale")
