@@ -69,6 +69,13 @@ def cli():
     return run_cli
 
 
+def without_progress(err: str) -> str:
+    """stderr without the progress notes a first run on empty caches prints while it
+    compiles (after 2 s: 'minidem: compiling ...', minidem.engine.warmup and simulation):
+    an error must be the first line after them."""
+    return "".join(line for line in err.splitlines(keepends=True) if not line.startswith("minidem: compiling "))
+
+
 def contact_count(state):
     """Contacts per particle (pairs and plane walls) in a :class:`minidem.engine.simulation.State`."""
     offsets, partners, _, overlap = state.pairs[:4]

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import OBLIQUE, REPO, minidem_command, run_cli
+from conftest import OBLIQUE, REPO, minidem_command, run_cli, without_progress
 from test_scenario_errors import SPHERES
 from minidem import cli, files
 from minidem.engine import checkpoint, simulation
@@ -40,7 +40,7 @@ SMALL_SETTLE = ["fill.0.jitter=0.0", "fill.0.count=300", "walls.0.upper=[0.02, 0
 
 def main(capsys, *args) -> tuple[int, str]:
     code = cli.main([str(a) for a in args])
-    err = capsys.readouterr().err
+    err = without_progress(capsys.readouterr().err)
     assert "Traceback" not in err and "internal error" not in err, err
     return code, err
 

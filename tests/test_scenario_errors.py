@@ -13,7 +13,7 @@ import textwrap
 
 import pytest
 
-from conftest import OBLIQUE, run_cli
+from conftest import OBLIQUE, run_cli, without_progress
 from minidem import cli
 from minidem.scene import scenario
 
@@ -171,7 +171,7 @@ def test_bad_input_is_refused_with_exit_2_and_a_useful_message(case, tmp_path, c
     code = cli.main(["run", str(path), "--out", str(tmp_path / "out"), *extra])
     captured = capsys.readouterr()
     assert code == 2, captured
-    message = captured.err
+    message = without_progress(captured.err)
     assert message.startswith("minidem: error: "), message
     assert "Traceback" not in message and "internal error" not in message
     if not case.startswith("set_without") and not case.startswith("set_empty") and not case.startswith("set_into"):
@@ -236,7 +236,7 @@ def test_bad_set_syntax_in_a_real_process():
 def refused(capsys, *argv) -> str:
     """Run minidem in-process, assert exit 2 with a one-message error and no traceback."""
     code = cli.main(list(argv))
-    message = capsys.readouterr().err
+    message = without_progress(capsys.readouterr().err)
     assert code == 2, message
     assert message.startswith("minidem: error: "), message
     assert "Traceback" not in message and "internal error" not in message, message
