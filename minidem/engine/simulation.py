@@ -491,8 +491,10 @@ class State:
 
     def list_near_planes(self) -> None:
         """The planes each sphere may touch until the next list build (at position_at_build)."""
-        self.planes = self.planes[:5] + neighbours.near_planes(self.position_at_build, self.particles[8],
-                                                                self.planes[0], self.planes[1], self.plane_margin)
+        wall_point, wall_normal = self.planes[:2]
+        radius = self.particles[8]  # the particle tuple's radius (kernel order)
+        self.planes = self.planes[:5] + neighbours.near_planes(self.position_at_build, radius, wall_point,
+                                                                wall_normal, self.plane_margin)
 
     def contact_pairs(self):
         """(pairs (M, 2) particle indices, normal force (M,) N) of touching particle pairs."""
