@@ -35,7 +35,8 @@ import numpy as np
 
 from minidem.files import atomic_write
 
-FORMAT = 1
+# 2: the pair reactions have a zero row after the last slot, and pair_reaction_in_use
+FORMAT = 2
 CHECKPOINT = "checkpoint.npz"
 FINAL_STATE = "final_state.npz"
 LAST_GOOD = "last_good.npz"
