@@ -35,9 +35,10 @@ of consecutive particles per thread:
                         the Verlet half list: it computes them through the one contact
                         evaluation (``evaluate_contact``), writes its own force, and
                         stores each pair's force and j's torque in j's row of the
-                        transposed list (zeros while the pair is apart)
-    finish_kick_drift   particle p adds the reactions of its pairs (i < p, p) in
-                        ascending i (its transposed row), v += F dt/2m; then, unless the
+                        transposed list, marked touching (reaction_in_use)
+    finish_kick_drift   particle p adds the reactions of its touching pairs (i < p, p)
+                        in ascending i (its transposed row), v += F dt/2m (and, at a
+                        sample step, its kinetic energy); then, unless the
                         step ends a chunk, the next step's v += F dt/2m, x += v dt and
                         the count of particles that moved more than half the skin since
                         the last neighbour-list build (``finish_range``)
