@@ -35,7 +35,7 @@ import numpy as np
 
 from minidem.files import atomic_write
 
-# 2: the pair reactions have a zero row after the last slot, and pair_reaction_in_use
+# 2: pair_reaction_in_use (whether each reaction row's pair touches)
 FORMAT = 2
 CHECKPOINT = "checkpoint.npz"
 FINAL_STATE = "final_state.npz"

@@ -575,8 +575,6 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     sampling, inertia, particle_energy = energy_step
     offsets, neighbours, history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use = pairs
-    # the reaction array's last row stays zero: read in place of the row of a pair apart
-    zero_row = reaction.shape[0] - 1
     moved_too_far = 0
     for p in range(first, last):
         if p < 0:  # never (non_negative)
@@ -586,24 +584,26 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
         if PAIRS:
             # the reactions of the pairs (i < p, p) in ascending i, stored contiguously
             # (the reverse rows), so the same sum whatever the thread count. Only the
-            # rows of touching pairs are read (reaction_in_use, a byte a row): a pair apart
-            # reads the zero row instead, chosen without a branch (whether a listed pair
-            # touches is unpredictable), and x - 0 is exactly x. Reading every row cost
-            # the falling phase of the settle scene (N = 200,000, one thread) 15 % of its
-            # step time, 48 bytes a listed pair a step from memory.
+            # rows of touching pairs are read (reaction_in_use, a byte a row; a pair apart
+            # holds zeros, and x - 0 is exactly x, so the same bits as adding every row).
+            # Reading every row cost the falling phase of the settle scene (N = 200,000,
+            # one thread) 15 % of its step time, 48 bytes a listed pair a step from
+            # memory. A branch: reading a zero row instead, chosen without one, was 10 %
+            # slower there (the loads wait for the flag), and in a pile, where about half
+            # the listed pairs touch, the branch measured no slower than reading every row.
             fx, fy, fz = force[p, 0], force[p, 1], force[p, 2]
             tx, ty, tz = torque[p, 0], torque[p, 1], torque[p, 2]
             for k in range(reverse_offsets[p], reverse_offsets[p + 1]):
                 if k < 0:  # never (non_negative)
                     continue
-                row = non_negative(k if reaction_in_use[k] else zero_row)
-                fx -= reaction[row, 0]
-                fy -= reaction[row, 1]
-                fz -= reaction[row, 2]
-                if SPIN:
-                    tx += reaction[row, 3]
-                    ty += reaction[row, 4]
-                    tz += reaction[row, 5]
+                if reaction_in_use[k]:
+                    fx -= reaction[k, 0]
+                    fy -= reaction[k, 1]
+                    fz -= reaction[k, 2]
+                    if SPIN:
+                        tx += reaction[k, 3]
+                        ty += reaction[k, 4]
+                        tz += reaction[k, 5]
             force[p, 0], force[p, 1], force[p, 2] = fx, fy, fz
             torque[p, 0], torque[p, 1], torque[p, 2] = tx, ty, tz
         if CLOSING_KICK > 0.0:

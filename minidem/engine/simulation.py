@@ -451,13 +451,11 @@ def pair_index_type(n_entries: int, n_particles: int):
 
 def pair_arrays(offsets, partners, history, overlap, slot, reverse_offsets):
     """The kernel's pair tuple for a new list (``State.pairs``): its reactions zero and no
-    pair touching yet (the next force pass stores both for the pairs that touch).
-
-    The reactions, in the transposed list's order (row ``slot[e]`` for entry e), have one
-    more row, always zero: the reaction gather reads it in place of a pair's row while
-    the pair is apart (``reaction_in_use[slot[e]] == 0``), so that only the rows of
-    touching pairs are brought from memory (minidem.engine.kernel.finish_range)."""
-    return (offsets, partners, history, overlap, np.zeros((partners.shape[0] + 1, 6)), slot, reverse_offsets,
+    pair touching yet (the next force pass stores both for the pairs that touch). The
+    reactions are in the transposed list's order (row ``slot[e]`` for entry e), and so is
+    ``reaction_in_use``, which says whether a row's pair touches: the reaction gather reads
+    only those rows (minidem.engine.kernel.finish_range)."""
+    return (offsets, partners, history, overlap, np.zeros((partners.shape[0], 6)), slot, reverse_offsets,
             np.zeros(partners.shape[0], dtype=np.uint8))
 
 
@@ -504,7 +502,7 @@ class State:
         self.meshes = (walls.triangles, walls.triangle_material, np.zeros(n + 1, dtype=np.int64), empty_index,
                        np.zeros((0, h)), np.zeros(0))
         # (offsets, partners, history, overlap, reactions (force on i, torque on j) in the
-        # transposed list's order and a zero row after them, each entry's slot there,
+        # transposed list's order, each entry's slot there,
         # transposed offsets, whether each slot's pair touches: pair_arrays)
         pair_index = np.zeros(0, dtype=pair_index_type(0, n))
         self.pairs = pair_arrays(np.zeros(n + 1, dtype=np.int64), pair_index, np.zeros((0, h)), np.zeros(0), pair_index,
