@@ -363,7 +363,8 @@ _STATE_TUPLES = {
 # per-contact arrays whose rows are all zero while the contact is not touching (a contact
 # that ends drops its history and its reaction): the last good state keeps only the rows
 # in use (State.capture)
-_SPARSE_ROWS = ("plane_history", "cylinder_history", "mesh_history", "pair_history", "pair_reaction")
+_SPARSE_ROWS = ("plane_history", "cylinder_history", "mesh_history", "pair_history", "pair_reaction",
+                "pair_reaction_in_use")
 # arrays nothing writes into once made (the neighbour lists, replaced whole at a rebuild,
 # and the positions at the last build, likewise): a capture holds them themselves, not a
 # copy (44 bytes a particle of the settle scene's last good state), until a rebuild
@@ -383,7 +384,10 @@ def _sparse_rows(name: str, array: np.ndarray) -> dict[str, np.ndarray]:
         # (bits != 0).any(axis=1) and fancy indexing (settle, N = 200,000); a block of
         # rows at a time, so that the flags are not one more whole-array temporary at the
         # peak of a large run (8 bytes a row: 24 MiB for the pair list at N = 1,000,000)
-        bits = array.reshape(array.shape[0], -1).view(np.uint64)
+        row_bytes = array.reshape(array.shape[0], -1).view(np.uint8)
+        # rows of whole 8-byte words (the histories and reactions) as such; others (the
+        # touching flags, a byte a row) byte by byte
+        bits = row_bytes.view(np.uint64) if row_bytes.shape[1] % 8 == 0 else row_bytes
         found = [rows]
         for start in range(0, bits.shape[0], _SPARSE_BLOCK):
             block = bits[start:start + _SPARSE_BLOCK]
