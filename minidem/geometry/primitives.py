@@ -42,8 +42,9 @@ def rotate_slot_into_plane(history, o, nx, ny, nz):
     """
     hx, hy, hz = history[o], history[o + 1], history[o + 2]
     before = hx * hx + hy * hy + hz * hz
-    if before == 0.0:
-        return
+    # no early return for an empty slot (it stays zero: after = 0, scale 0): without a
+    # branch the compiler hands the rotated values straight to the law, which reads the
+    # slot next, instead of storing and loading them again
     along = hx * nx + hy * ny + hz * nz
     hx, hy, hz = hx - along * nx, hy - along * ny, hz - along * nz
     after = hx * hx + hy * hy + hz * hz
