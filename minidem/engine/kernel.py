@@ -505,7 +505,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                             note_transitions(stats, time, dt, overlap, previous)
                         if previous > lives_above:
                             # contact ends: its history is dropped and its reaction on j
-                            # is zero from now on (finish_range adds every entry unconditionally)
+                            # is zero from now on, and finish_range no longer reads it
                             pair_history[e, :] = 0.0
                             r = non_negative(reaction_slot[e])
                             reaction[r, :] = 0.0
@@ -587,9 +587,10 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
     ``own_given``: the force pass finishing its particle i (first = i, last = i + 1) hands
     over ``own`` = (force, torque) of i's own contacts and gravity in registers; else
     they are read from the force and torque arrays. The total is stored only when the
-    step is the call's last (no drift: the next call's opening kick and the run between
-    chunks read it); with the drift fused nothing reads it before the next force pass
-    overwrites it (48 bytes a particle-step of memory traffic saved)."""
+    drift is not fused (the call's last step, and every traced or stop-at-separation
+    step: the next call's opening kick and the run between chunks read it); with the
+    drift fused nothing reads it before the next force pass overwrites it (48 bytes a
+    particle-step of memory traffic saved)."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     sampling, inertia, particle_energy = energy_step
     offsets, neighbours, history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use = pairs

@@ -87,13 +87,16 @@ SNAPSHOT_STEPS = 100
 SNAPSHOT_COST_RATIO = 200
 # Chunks of the compiled loop end at every multiple of a step count fixed by the scene
 # (and earlier for a list rebuild, a frame, a checkpoint or a probe of the thread count):
-# CHECK_PARTICLE_STEPS particle-steps, at least CHECK_STEPS steps. Between chunks come the
-# blow-up guard's checks (~10 ns a particle) and Python's own work (~0.1 ms): at these
-# sizes they cost under 1 % of the steps of the cheapest scene (~50 ns a particle-step,
-# settle's falling phase), and a chunk lasts ~0.05-0.5 s (how long a Ctrl-C waits). A
-# grid of steps, not of wall time, so the guard's record (the largest work of gravity,
-# taken on the grid) is the same in a resumed run as in an uninterrupted one.
-CHECK_STEPS = 50
+# the spacing of the energy samples (at least 200 a run) or CHECK_PARTICLE_STEPS
+# particle-steps, whichever is fewer, but at least CHECK_STEPS steps. Between chunks come
+# the blow-up guard's checks (~10 ns a particle) and Python's own work (~0.1 ms): a small
+# scene is checked at every sample as before, and from ~20,000 particles on a chunk is
+# CHECK_STEPS steps at least, so the checks cost ~1 % of the cheapest steps (~50 ns a
+# particle-step, settle's falling phase); at N = 1,000,000 that is a chunk of ~1-4 s on
+# one thread (how long a Ctrl-C waits). A grid of steps, not of wall time, so the
+# guard's record (the largest work of gravity, taken on the grid and at list rebuilds)
+# is the same in a resumed run as in an uninterrupted one.
+CHECK_STEPS = 20
 CHECK_PARTICLE_STEPS = 1_000_000
 
 
@@ -107,7 +110,7 @@ class LoopThreads:
     times slower than on one (docs/multi-particle.md, "Threads"). So the run times its
     chunks (seconds per step) and now and then runs one chunk on the other count, keeping
     the faster. A probe that loses doubles the wait before the next one, up to
-    ``PROBE_MAX`` chunks (a chunk is ~0.1-0.2 s), so losing probes cost a few per cent.
+    ``PROBE_MAX`` chunks (see CHECK_PARTICLE_STEPS), so losing probes cost a few per cent.
     """
 
     PROBE_FIRST, PROBE_MAX = 4, 64
@@ -979,8 +982,9 @@ class Simulation:
             resume_from=None) -> RunResult:
         """Run the scene.
 
-        progress(steps, total_steps, contacts): called after every chunk (about every
-        0.2 s of wall time). on_frame(time, state): called at t = 0 and every
+        progress(steps, total_steps, contacts): called after every chunk (at every energy
+        sample of a small scene, every CHECK_STEPS steps or more of a large one; see
+        CHECK_PARTICLE_STEPS). on_frame(time, state): called at t = 0 and every
         ``output_interval`` of simulated time (state: :class:`State`); an on_frame that
         also has ``checkpoint_state()`` and ``restore(saved, frames)`` (as
         :class:`minidem.results.vtk.SimulationFrames`) has its series saved in checkpoints.
@@ -1117,8 +1121,8 @@ class _RunLoop:
         # (with particle-steps alone, N = 20,000 copied every 10 steps, i.e. every chunk:
         # 0.45 s of a 7.4 s run, jitter, 4,000 steps, two threads)
         self.snapshot_steps = max(SNAPSHOT_STEPS, SNAPSHOT_PARTICLE_STEPS // max(1, scene.n_particles))
-        self.check_steps = max(1, min(chunk_steps,
-                                      max(CHECK_STEPS, CHECK_PARTICLE_STEPS // max(1, scene.n_particles))))
+        self.check_steps = max(1, min(chunk_steps, max(CHECK_STEPS, min(
+            self.sample_steps, CHECK_PARTICLE_STEPS // max(1, scene.n_particles)))))
         # After an analytic flight the steps start at first touch: the flight's frames
         # (t = 0, interval, ... before the touch) are written from the closed form, and
         # the stepped frames follow every interval from the touch.
@@ -1148,7 +1152,9 @@ class _RunLoop:
                                                                    dt, stop_at_separation, samples=samples))
         if sampled:
             first = start_step // self.sample_steps + 1
-            for k in range((start_step + taken) // self.sample_steps - first + 1):
+            # a fault returns after its step's forces, before that step's sample
+            last_complete = start_step + taken - (1 if self.status[0] != kernel.OK else 0)
+            for k in range(last_complete // self.sample_steps - first + 1):
                 self.energy.append((self.start_time + (first + k) * self.sample_steps * self.sim.dt,
                                     float(samples[k])))
         return taken, needs_rebuild
@@ -1314,8 +1320,11 @@ class _RunLoop:
     def check(self, step, on_grid=True):
         """The blow-up guard between chunks (see :mod:`minidem.engine.blowup`). Its record
         of the work of gravity is kept from the checks ``on_grid`` (steps every run of the
-        scene checks, resumed or not), not from a chunk cut short by a probe or a
-        checkpoint due by wall time."""
+        scene checks, resumed or not: the grid of chunks and the list rebuilds), not from a
+        chunk cut short by a probe or a checkpoint due by wall time. Before a list rebuild
+        (mid-step) the force and torque arrays hold an earlier step's (the force pass
+        stores them only at a call's last step): finite, as that step's check found; a
+        non-finite force of this step stops the kernel itself."""
         at_time = self.start_time + step * self.sim.dt
         fault, work_max = self.guard.check(self.state, at_time, self.loop["gravity_work_max"])
         if on_grid:
