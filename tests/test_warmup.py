@@ -118,3 +118,31 @@ def test_the_kernel_loads_the_law_the_helper_compiled(tmp_path):
         assert misses == 1, found
     else:
         assert hits >= 1 and misses == 0, found
+
+
+_HELPER_IMPORTS = """
+import minidem
+from minidem.engine import warmup
+helper = warmup._spawn("import minidem; print(minidem.__file__, flush=True)", law_first=True)
+print(minidem.__file__)
+print(helper.process.stdout.readline().decode().strip())
+helper.wait()
+"""
+
+
+def test_the_helper_imports_the_minidem_the_run_imported(tmp_path):
+    """`minidem run` started from a folder holding another ``minidem/`` (the clone a user
+    installed with ``pip install .``): the helper must import the package the run
+    imported, not the folder's. numba caches a function under its source file's path,
+    so a helper compiling the folder's copy filled a cache the run never reads, and the
+    run compiled the law and the guard again (found timing a fresh clone's first run)."""
+    clone = tmp_path / "clone"
+    (clone / "minidem").mkdir(parents=True)
+    (clone / "minidem" / "__init__.py").write_text("# a stale copy of the package, next to the scene files\n")
+    script = tmp_path / "run.py"  # like the console script: the working directory is not on the run's sys.path
+    script.write_text(_HELPER_IMPORTS)
+    done = subprocess.run([sys.executable, str(script)], cwd=clone, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    run_package, helper_package = done.stdout.split()
+    assert "clone" not in run_package, run_package
+    assert helper_package == run_package
