@@ -76,8 +76,11 @@ def command_run(args) -> int:
 
     from minidem.engine import checkpoint
 
+    from minidem.engine import warmup
+
     data = scenario.read_toml(args.file)
     if sweep.has_sweep(data):
+        warmup.dismiss()  # a sweep's cases run in their own processes
         if args.resume and args.restart:
             raise scenario.ScenarioError(f"{args.file}: --resume and --restart contradict each other: a sweep "
                                          "resumes by default; --restart runs every case again")
@@ -85,8 +88,6 @@ def command_run(args) -> int:
     for option, given in (("--scheduler", args.scheduler), ("--restart", args.restart), ("--workers", args.workers)):
         if given is not None and given is not False:
             warnings.warn(f"{option} ignored: {args.file} has no [sweep] table (a single run)")
-    from minidem.engine import warmup
-
     # on a fresh install the scene's kernel compiles in a helper while the check of
     # overlapping spheres compiles the neighbour search here
     scene = scenario.load_scene(args.file, args.set, args.out, while_checking=functools.partial(
@@ -428,15 +429,21 @@ class _PipeClosedSink:
 
 
 def main(argv=None) -> int:
+    if argv is None and not isinstance(sys.stdout, _PipeClosedSink):  # the console command itself
+        sys.stdout = _PipeClosedSink(sys.stdout)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from minidem.engine import warmup
+
+    if args.handler is command_run:
+        # on a fresh install, the helper that compiles beside the run starts before the
+        # engine is imported here (minidem.engine.warmup.prestart)
+        warmup.prestart()
     from minidem.contact.laws import LawError
     from minidem.files import OutputError
     from minidem.scene.scenario import ScenarioError
     from minidem.engine.simulation import RunFailure
 
-    if argv is None and not isinstance(sys.stdout, _PipeClosedSink):  # the console command itself
-        sys.stdout = _PipeClosedSink(sys.stdout)
-    parser = build_parser()
-    args = parser.parse_args(argv)
     with warnings.catch_warnings():
         warnings.simplefilter("always")
         warnings.showwarning = lambda message, *a, **k: print(f"minidem: warning: {message}", file=sys.stderr)
@@ -466,6 +473,9 @@ def main(argv=None) -> int:
             print(f"minidem: internal error: {type(exc).__name__}: {exc} (rerun with --debug for the traceback)",
                   file=sys.stderr)
             return EXIT_FAILURE
+        finally:
+            if args.handler is command_run:  # a prestarted helper no job was given to
+                warmup.dismiss()
 
 
 def console() -> None:
