@@ -35,7 +35,8 @@ import numpy as np
 
 from minidem.files import atomic_write
 
-FORMAT = 1
+# 2: pair_reaction_in_use (whether each reaction row's pair touches)
+FORMAT = 2
 CHECKPOINT = "checkpoint.npz"
 FINAL_STATE = "final_state.npz"
 LAST_GOOD = "last_good.npz"

@@ -35,9 +35,10 @@ of consecutive particles per thread:
                         the Verlet half list: it computes them through the one contact
                         evaluation (``evaluate_contact``), writes its own force, and
                         stores each pair's force and j's torque in j's row of the
-                        transposed list (zeros while the pair is apart)
-    finish_kick_drift   particle p adds the reactions of its pairs (i < p, p) in
-                        ascending i (its transposed row), v += F dt/2m; then, unless the
+                        transposed list, marked touching (reaction_in_use)
+    finish_kick_drift   particle p adds the reactions of its touching pairs (i < p, p)
+                        in ascending i (its transposed row), v += F dt/2m (and, at a
+                        sample step, its kinetic energy); then, unless the
                         step ends a chunk, the next step's v += F dt/2m, x += v dt and
                         the count of particles that moved more than half the skin since
                         the last neighbour-list build (``finish_range``)
@@ -73,7 +74,7 @@ from minidem.geometry.primitives import (
     rotate_slot_into_plane,
     triangle_closest_point,
 )
-from minidem.engine.integrate import drift, kick
+from minidem.engine.integrate import block_sum, drift, kick, particle_kinetic_energy
 # the blocks of particles per thread are chosen outside the kernel (advance's bounds and
 # first_partner); named here too, where the kernel's two passes are described
 from minidem.engine.blocks import defer_finishing  # noqa: F401
@@ -292,7 +293,7 @@ def mesh_entry_overlap(px, py, pz, ri, triangles, candidates, start, stop, k, to
 
 @numba.njit(cache=True, error_model="numpy", fastmath=FAST, inline=INLINE)
 def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking,
-                first_partner, drift_on, position_at_build, half_skin_squared):
+                first_partner, drift_on, position_at_build, half_skin_squared, energy_step):
     """Gravity and the contacts owned by particles first..last-1; returns (their count,
     particles moved more than half the skin, see ``finish_range``).
 
@@ -316,7 +317,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
     wall_point, wall_normal, wall_material, wall_history, wall_overlap, near_offsets, near_planes = planes
     base, axis, cylinder_radius, length, cylinder_material, cylinder_history, cylinder_overlap_prev = cylinders
     triangles, triangle_material, mesh_offsets, mesh_candidates, mesh_history, mesh_overlap = meshes
-    offsets, neighbours, pair_history, pair_overlap, reaction, reaction_slot, reverse_offsets = pairs
+    offsets, neighbours, pair_history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use = pairs
     probe_wall, probe, stats, status = tracking
     longest_row = 0
     if PAIRS:
@@ -501,7 +502,9 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                             # contact ends: its history is dropped and its reaction on j
                             # is zero from now on (finish_range adds every entry unconditionally)
                             pair_history[e, :] = 0.0
-                            reaction[reaction_slot[e], :] = 0.0
+                            r = non_negative(reaction_slot[e])
+                            reaction[r, :] = 0.0
+                            reaction_in_use[r] = 0
             for k in range(n_touching):
                 e = non_negative(touching_entries[k])
                 j = non_negative(neighbours[e])
@@ -536,6 +539,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 # torque on j, R_j' (n x ft) minus the couple on i, at the slot of the entry
                 # in j's reverse row
                 r = non_negative(reaction_slot[e])
+                reaction_in_use[r] = 1
                 reaction[r, 0], reaction[r, 1], reaction[r, 2] = on_i
                 if COUPLES:
                     reaction[r, 3] = lever_j * direction[0] - couple[0]
@@ -552,21 +556,25 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
         active += count
         if first_partner[i] >= first:
             moved_too_far += finish_range(i, i + 1, last, first_partner, particles, pairs, dt, drift_on,
-                                          position_at_build, half_skin_squared)
+                                          position_at_build, half_skin_squared, energy_step)
     return active, moved_too_far
 
 
 @numba.njit(cache=True, fastmath=FAST, inline="always")
 def finish_range(first, last, finished_from, first_partner, particles, pairs, dt, drift_on, position_at_build,
-                 half_skin_squared):
+                 half_skin_squared, energy_step):
     """Particles first..last-1, except those whose first partner is at ``finished_from``
     or later (finished in the force pass): add the pair reactions and apply the closing
     kick; with ``drift_on`` also the next step's opening half kick and drift (the same
     operations in the same order, so the same bits as a closing kick then
     ``kick_drift``). Returns how many of them have moved more than half the skin since
-    the neighbour list was built (0 without drift)."""
+    the neighbour list was built (0 without drift). ``energy_step`` = (sampling,
+    inertia, particle_energy): when sampling, each particle's kinetic energy at the end of
+    the step (after the closing kick) goes to particle_energy, fused here rather than a
+    pass of its own (see ``advance``)."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
-    offsets, neighbours, history, pair_overlap, reaction, reaction_slot, reverse_offsets = pairs
+    sampling, inertia, particle_energy = energy_step
+    offsets, neighbours, history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use = pairs
     moved_too_far = 0
     for p in range(first, last):
         if p < 0:  # never (non_negative)
@@ -575,25 +583,34 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
             continue
         if PAIRS:
             # the reactions of the pairs (i < p, p) in ascending i, stored contiguously
-            # (the reverse rows): a streamed read, and the same sum whatever the thread
-            # count. Entries not in contact hold zeros: no branch, and x - 0 is exactly x.
+            # (the reverse rows), so the same sum whatever the thread count. Only the
+            # rows of touching pairs are read (reaction_in_use, a byte a row; a pair apart
+            # holds zeros, and x - 0 is exactly x, so the same bits as adding every row).
+            # Reading every row cost the falling phase of the settle scene (N = 200,000,
+            # one thread) 15 % of its step time, 48 bytes a listed pair a step from
+            # memory. A branch: reading a zero row instead, chosen without one, was 10 %
+            # slower there (the loads wait for the flag), and in a pile, where about half
+            # the listed pairs touch, the branch measured no slower than reading every row.
             fx, fy, fz = force[p, 0], force[p, 1], force[p, 2]
             tx, ty, tz = torque[p, 0], torque[p, 1], torque[p, 2]
             for k in range(reverse_offsets[p], reverse_offsets[p + 1]):
                 if k < 0:  # never (non_negative)
                     continue
-                fx -= reaction[k, 0]
-                fy -= reaction[k, 1]
-                fz -= reaction[k, 2]
-                if SPIN:
-                    tx += reaction[k, 3]
-                    ty += reaction[k, 4]
-                    tz += reaction[k, 5]
+                if reaction_in_use[k]:
+                    fx -= reaction[k, 0]
+                    fy -= reaction[k, 1]
+                    fz -= reaction[k, 2]
+                    if SPIN:
+                        tx += reaction[k, 3]
+                        ty += reaction[k, 4]
+                        tz += reaction[k, 5]
             force[p, 0], force[p, 1], force[p, 2] = fx, fy, fz
             torque[p, 0], torque[p, 1], torque[p, 2] = tx, ty, tz
         if CLOSING_KICK > 0.0:
             kick(p, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, CLOSING_KICK * dt,
                  SPIN)
+        if sampling:
+            particle_energy[p] = particle_kinetic_energy(p, mass, inertia, velocity, angular_velocity)
         if drift_on and kick_drift_one(p, position, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, dt,
                                         position_at_build, half_skin_squared):
             moved_too_far += 1
@@ -602,7 +619,7 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
 
 @numba.njit(cache=True, parallel=PARALLEL, inline=INLINE)
 def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking, threads, drift_on,
-                   position_at_build, half_skin_squared, bounds, first_partner):
+                   position_at_build, half_skin_squared, bounds, first_partner, energy_step):
     """Gravity and every contact force on every particle; returns (the number of
     contacts, particles finished and moved too far). Finishes every particle that has
     no partner in an earlier block (``force_range``), on one thread all of them; the
@@ -621,7 +638,8 @@ def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt
             for block in particle_range(threads):
                 block_active, block_moved = force_range(bounds[block], bounds[block + 1], particles, law, planes,
                                                         cylinders, meshes, pairs, gravity, dt, time, tracking,
-                                                        first_partner, drift_on, position_at_build, half_skin_squared)
+                                                        first_partner, drift_on, position_at_build, half_skin_squared,
+                                                        energy_step)
                 active += block_active
                 moved_too_far += block_moved
             return active, moved_too_far
@@ -629,18 +647,18 @@ def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt
     # literal first argument, beside the prange loop's (11 of the 44 s of CPU of a first run
     # of scenarios/settle.toml)
     return force_range(bounds[0], bounds[1], particles, law, planes, cylinders, meshes, pairs, gravity, dt, time,
-                       tracking, first_partner, drift_on, position_at_build, half_skin_squared)
+                       tracking, first_partner, drift_on, position_at_build, half_skin_squared, energy_step)
 
 
 @numba.njit(cache=True, parallel=PARALLEL, inline=INLINE)
 def finish_kick_drift(particles, pairs, dt, drift_on, position_at_build, half_skin_squared, threads, bounds,
-                      first_partner):
+                      first_partner, energy_step):
     """``finish_range`` of the particles compute_forces left (a partner in an earlier
     block), in the same blocks."""
     moved_too_far = 0
     for block in particle_range(threads):
         moved_too_far += finish_range(bounds[block], bounds[block + 1], bounds[block], first_partner, particles,
-                                      pairs, dt, drift_on, position_at_build, half_skin_squared)
+                                      pairs, dt, drift_on, position_at_build, half_skin_squared, energy_step)
     return moved_too_far
 
 
@@ -672,10 +690,24 @@ def kick_drift(particles, dt, position_at_build, half_skin_squared):
     return moved_too_far
 
 
+@numba.njit(cache=True, parallel=PARALLEL, inline=INLINE)
+def total_energy(particle_energy, block_sums):
+    """The sum of the particles' energies (J) by the blocks of
+    ``minidem.engine.integrate.kinetic_energy`` (ENERGY_BLOCK particles each, summed in
+    parallel, their sums added in order): the same bits on any number of threads, and as
+    that function's."""
+    for block in particle_range(block_sums.shape[0]):
+        block_sums[block] = block_sum(block, particle_energy)
+    total = 0.0
+    for block in range(block_sums.shape[0]):
+        total += block_sums[block]
+    return total
+
+
 @numba.njit(cache=True, error_model="numpy")
 def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_at_build, half_skin_squared,
             dt, start_time, start_step, n_steps, resume, stop_at_separation, trace, tracking, threads, bounds,
-            first_partner):
+            first_partner, energy):
     """Advance up to n_steps; return (steps completed, neighbour list needs a rebuild).
 
     Returns early
@@ -686,6 +718,14 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
       contact has occurred; tracked scenes only);
     * on a fault (status[0] != OK).
     ``trace`` (rows = steps, may have 0 rows) receives the probed contact each step.
+    ``energy`` = (sample_steps, inertia, samples, particle_energy, block_sums): at the end
+    of every step whose number (start_step + 1, ...) is a multiple of sample_steps (> 0),
+    the kinetic energy goes to the next element of ``samples`` (as many as fit): the run's
+    samples, taken without returning to Python (at 200 samples a run, returning for each
+    cost the falling phase of the settle scene at N = 200,000 18 % of its time, in the
+    checks and the sample between chunks) and without a pass of their own (each
+    particle's energy is taken as it is finished, ``finish_range``; a separate pass and
+    the unfused drift after it cost as much as the returns).
     ``threads``: how many threads run the particle loops, at most numba's current
     number (numba.set_num_threads; not read here: numba.get_num_threads() in compiled
     code makes it uncacheable). ``bounds``, ``first_partner``: its blocks of particles
@@ -703,6 +743,8 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
     """
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     probe_wall, probe, stats, status = tracking
+    sample_steps, inertia, samples, particle_energy, block_sums = energy
+    sampled = 0
     if not PARALLEL:
         threads = 1
     drifted = resume  # the opening half kick and drift of the current step are done
@@ -711,16 +753,21 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
             if kick_drift(particles, dt, position_at_build, half_skin_squared) > 0:
                 return step, True
         time = start_time + (start_step + step + 1) * dt
+        sampling = sample_steps > 0 and (start_step + step + 1) % sample_steps == 0 and sampled < samples.shape[0]
+        energy_step = (sampling, inertia, particle_energy)
         drifted = step + 1 < n_steps and step + 1 >= trace.shape[0] and not stop_at_separation
         active, moved_too_far = compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time,
                                                tracking, threads, drifted, position_at_build, half_skin_squared, bounds,
-                                               first_partner)
+                                               first_partner, energy_step)
         if status[0] != OK:
             return step + 1, False
         if PARALLEL:  # compile-time: a serial kernel has no second pass to compile
             if threads > 1:
                 moved_too_far += finish_kick_drift(particles, pairs, dt, drifted, position_at_build,
-                                                   half_skin_squared, threads, bounds, first_partner)
+                                                   half_skin_squared, threads, bounds, first_partner, energy_step)
+        if sampling:
+            samples[sampled] = total_energy(particle_energy, block_sums)
+            sampled += 1
         if not TRACK and active > 0 and stats[FIRST_CONTACT_TIME] < 0.0:
             stats[FIRST_CONTACT_TIME] = time  # to the step: only the serial loop interpolates
         if step < trace.shape[0]:

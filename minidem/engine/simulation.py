@@ -85,6 +85,16 @@ SNAPSHOT_STEPS = 100
 # N = 20,000, lattice: 100 steps are 88 ms on two threads, a copy ~2 ms); the copies'
 # spacing changes no result (a failure replays from the copy to the last checked step)
 SNAPSHOT_COST_RATIO = 200
+# Chunks of the compiled loop end at every multiple of a step count fixed by the scene
+# (and earlier for a list rebuild, a frame, a checkpoint or a probe of the thread count):
+# CHECK_PARTICLE_STEPS particle-steps, at least CHECK_STEPS steps. Between chunks come the
+# blow-up guard's checks (~10 ns a particle) and Python's own work (~0.1 ms): at these
+# sizes they cost under 1 % of the steps of the cheapest scene (~50 ns a particle-step,
+# settle's falling phase), and a chunk lasts ~0.05-0.5 s (how long a Ctrl-C waits). A
+# grid of steps, not of wall time, so the guard's record (the largest work of gravity,
+# taken on the grid) is the same in a resumed run as in an uninterrupted one.
+CHECK_STEPS = 50
+CHECK_PARTICLE_STEPS = 1_000_000
 
 
 class LoopThreads:
@@ -344,14 +354,16 @@ _STATE_TUPLES = {
     # the reactions' slots and the transposed offsets follow from the list (State.restore
     # recomputes them); the reactions are kept: a step rewrites them before reading, but
     # the last good state's VTK frame and contact forces read them as they are
-    "pairs": ("pair_offsets", "pair_neighbours", "pair_history", "pair_overlap", "pair_reaction", None, None),
+    "pairs": ("pair_offsets", "pair_neighbours", "pair_history", "pair_overlap", "pair_reaction", None, None,
+              "pair_reaction_in_use"),
 }
 
 
 # per-contact arrays whose rows are all zero while the contact is not touching (a contact
 # that ends drops its history and its reaction): the last good state keeps only the rows
 # in use (State.capture)
-_SPARSE_ROWS = ("plane_history", "cylinder_history", "mesh_history", "pair_history", "pair_reaction")
+_SPARSE_ROWS = ("plane_history", "cylinder_history", "mesh_history", "pair_history", "pair_reaction",
+                "pair_reaction_in_use")
 # arrays nothing writes into once made (the neighbour lists, replaced whole at a rebuild,
 # and the positions at the last build, likewise): a capture holds them themselves, not a
 # copy (44 bytes a particle of the settle scene's last good state), until a rebuild
@@ -371,7 +383,10 @@ def _sparse_rows(name: str, array: np.ndarray) -> dict[str, np.ndarray]:
         # (bits != 0).any(axis=1) and fancy indexing (settle, N = 200,000); a block of
         # rows at a time, so that the flags are not one more whole-array temporary at the
         # peak of a large run (8 bytes a row: 24 MiB for the pair list at N = 1,000,000)
-        bits = array.reshape(array.shape[0], -1).view(np.uint64)
+        row_bytes = array.reshape(array.shape[0], -1).view(np.uint8)
+        # rows of whole 8-byte words (the histories and reactions) as such; others (the
+        # touching flags, a byte a row) byte by byte
+        bits = row_bytes.view(np.uint64) if row_bytes.shape[1] % 8 == 0 else row_bytes
         found = [rows]
         for start in range(0, bits.shape[0], _SPARSE_BLOCK):
             block = bits[start:start + _SPARSE_BLOCK]
@@ -437,6 +452,16 @@ def pair_index_type(n_entries: int, n_particles: int):
     return np.int32 if max(n_entries, n_particles) < 2**31 else np.int64
 
 
+def pair_arrays(offsets, partners, history, overlap, slot, reverse_offsets):
+    """The kernel's pair tuple for a new list (``State.pairs``): its reactions zero and no
+    pair touching yet (the next force pass stores both for the pairs that touch). The
+    reactions are in the transposed list's order (row ``slot[e]`` for entry e), and so is
+    ``reaction_in_use``, which says whether a row's pair touches: the reaction gather reads
+    only those rows (minidem.engine.kernel.finish_range)."""
+    return (offsets, partners, history, overlap, np.zeros((partners.shape[0], 6)), slot, reverse_offsets,
+            np.zeros(partners.shape[0], dtype=np.uint8))
+
+
 class State:
     """The arrays the compiled kernel advances, grouped as it takes them.
 
@@ -480,10 +505,11 @@ class State:
         self.meshes = (walls.triangles, walls.triangle_material, np.zeros(n + 1, dtype=np.int64), empty_index,
                        np.zeros((0, h)), np.zeros(0))
         # (offsets, partners, history, overlap, reactions (force on i, torque on j) in the
-        # transposed list's order, each entry's slot there, transposed offsets)
+        # transposed list's order, each entry's slot there,
+        # transposed offsets, whether each slot's pair touches: pair_arrays)
         pair_index = np.zeros(0, dtype=pair_index_type(0, n))
-        self.pairs = (np.zeros(n + 1, dtype=np.int64), pair_index, np.zeros((0, h)), np.zeros(0),
-                      np.zeros((0, 6)), pair_index, np.zeros(n + 1, dtype=np.int64))
+        self.pairs = pair_arrays(np.zeros(n + 1, dtype=np.int64), pair_index, np.zeros((0, h)), np.zeros(0), pair_index,
+                                 np.zeros(n + 1, dtype=np.int64))
         self.position_at_build = self.position.copy()
         self.list_near_planes()
         self.builds = 0
@@ -574,7 +600,7 @@ class State:
             reverse_offsets, slot = neighbours.reverse_index(offsets, partners, len(offsets) - 1)
         else:
             reverse_offsets, slot = np.zeros_like(offsets), partners.copy()
-        self.pairs = self.pairs[:5] + (slot, reverse_offsets)
+        self.pairs = self.pairs[:5] + (slot, reverse_offsets) + self.pairs[7:]
         self.list_near_planes()
         self.builds = int(arrays["builds"])
 
@@ -918,7 +944,7 @@ class Simulation:
                 history = np.zeros((found.shape[0], old[2].shape[1]))
                 overlap = neighbours.carry_history(*old, offsets, found, history)
             except BaseException:
-                state.pairs = old + (None, None, None)  # as before the call (a failure restores from it)
+                state.pairs = old + (None, None, None, None)  # as before the call (a failure restores from it)
                 raise
             del old
             if state.builds == 0:
@@ -933,7 +959,7 @@ class Simulation:
                     overlap[entries] = radius[first] + radius[found[entries]] - np.linalg.norm(
                         state.position[first] - state.position[found[entries]], axis=1)
             reverse_offsets, slot = neighbours.reverse_index(offsets, found, len(radius))
-            state.pairs = (offsets, found, history, overlap, np.zeros((found.shape[0], 6)), slot, reverse_offsets)
+            state.pairs = pair_arrays(offsets, found, history, overlap, slot, reverse_offsets)
         if state.meshes[0].shape[0]:
             triangles, triangle_material, old_offsets, old_found, old_history, old_overlap = state.meshes
             offsets, found = neighbours.mesh_candidates(state.position, radius, self.skin, triangles)
@@ -1076,8 +1102,12 @@ class _RunLoop:
         self.frame_interval = sim.frame_interval(end_time)
         self.frames_on = on_frame is not None and bool(self.frame_interval)
         self.saves_series = self.frames_on and hasattr(on_frame, "checkpoint_state")
-        # Kinetic energy: at least 200 samples a run, and at every frame.
+        # Kinetic energy: at least 200 samples a run (taken by the kernel, every
+        # sample_steps), and at every frame and the end
         self.sample_steps = max(1, int(math.ceil(end_time / 200.0 / sim.dt - 1e-9)))
+        self.particle_energy = np.zeros(scene.n_particles)
+        self.energy_blocks = np.zeros(integrate.energy_blocks(scene.n_particles))
+        self.no_samples = np.zeros(0)
         self.checkpoint_steps = (max(1, int(round(policy.interval / sim.dt)))
                                  if policy is not None and policy.interval else None)
         # The last good state (restored and written on a blow-up, and the checkpoint of a
@@ -1086,6 +1116,8 @@ class _RunLoop:
         # (with particle-steps alone, N = 20,000 copied every 10 steps, i.e. every chunk:
         # 0.45 s of a 7.4 s run, jitter, 4,000 steps, two threads)
         self.snapshot_steps = max(SNAPSHOT_STEPS, SNAPSHOT_PARTICLE_STEPS // max(1, scene.n_particles))
+        self.check_steps = max(1, min(chunk_steps,
+                                      max(CHECK_STEPS, CHECK_PARTICLE_STEPS // max(1, scene.n_particles))))
         # After an analytic flight the steps start at first touch: the flight's frames
         # (t = 0, interval, ... before the touch) are written from the closed form, and
         # the stepped frames follow every interval from the touch.
@@ -1101,19 +1133,30 @@ class _RunLoop:
     def frame_step(self, index):
         return int(round((index - self.flight_frames) * self.frame_interval / self.sim.dt))
 
-    def call(self, start_step, n_steps, completing, trace, threads=None, dt=None, stop_at_separation=None):
+    def call(self, start_step, n_steps, completing, trace, threads=None, dt=None, stop_at_separation=None,
+             sampled=False):
         """``n_steps`` compiled steps from ``start_step``; returns (steps taken, whether the
-        neighbour list must be rebuilt first)."""
+        neighbour list must be rebuilt first). ``sampled``: the kinetic-energy samples of
+        the steps taken are added to the run's (a replay after a failure takes none)."""
         threads = threads or self.loop_threads.current
+        samples = (np.empty((start_step + n_steps) // self.sample_steps - start_step // self.sample_steps)
+                   if sampled else self.no_samples)
         # every parallel loop of the chunk (the opening kick_drift too) on that many
         numba.set_num_threads(threads)
-        return self.kernel.advance(*self.arguments(start_step, n_steps, completing, trace, threads, dt,
-                                                   stop_at_separation))
+        taken, needs_rebuild = self.kernel.advance(*self.arguments(start_step, n_steps, completing, trace, threads,
+                                                                   dt, stop_at_separation, samples=samples))
+        if sampled:
+            first = start_step // self.sample_steps + 1
+            for k in range((start_step + taken) // self.sample_steps - first + 1):
+                self.energy.append((self.start_time + (first + k) * self.sample_steps * self.sim.dt,
+                                    float(samples[k])))
+        return taken, needs_rebuild
 
     def arguments(self, start_step, n_steps, completing, trace, threads, dt=None, stop_at_separation=None,
-                  one_block=False):
+                  one_block=False, samples=None):
         """The arguments of the kernel's ``advance`` (``one_block``: the blocks of one
-        thread, whatever ``threads`` says: for their types alone)."""
+        thread, whatever ``threads`` says: for their types alone; ``samples``: where the
+        kinetic-energy samples go, None for none)."""
         state, sim = self.state, self.sim
         # a serial kernel runs its particle loops on one thread, whatever it is told
         bounds, first_partner = blocks.blocks(threads if sim.threaded and not one_block else 1, state.planes,
@@ -1122,7 +1165,9 @@ class _RunLoop:
                 self.scene.gravity, state.position_at_build, self.half_skin_squared, sim.dt if dt is None else dt,
                 self.start_time, start_step, n_steps, completing,
                 self.stop_at_separation if stop_at_separation is None else stop_at_separation, trace,
-                self.tracking, threads, bounds, first_partner)
+                self.tracking, threads, bounds, first_partner,
+                (self.sample_steps if samples is not None else 0, self.scene.inertia,
+                 self.no_samples if samples is None else samples, self.particle_energy, self.energy_blocks))
 
     def compile_kernel(self):
         """Compile (or load from the cache) the kernel's ``advance`` for the types of its
@@ -1265,10 +1310,15 @@ class _RunLoop:
         raise RunFailure(f"{message}. {advice[0].upper()}{advice[1:]}. Last good state: step {good_step} "
                          f"(t = {self.start_time + good_step * sim.dt:.6g} s){where}")
 
-    def check(self, step):
-        """The blow-up guard between chunks (see :mod:`minidem.engine.blowup`)."""
+    def check(self, step, on_grid=True):
+        """The blow-up guard between chunks (see :mod:`minidem.engine.blowup`). Its record
+        of the work of gravity is kept from the checks ``on_grid`` (steps every run of the
+        scene checks, resumed or not), not from a chunk cut short by a probe or a
+        checkpoint due by wall time."""
         at_time = self.start_time + step * self.sim.dt
-        fault, self.loop["gravity_work_max"] = self.guard.check(self.state, at_time, self.loop["gravity_work_max"])
+        fault, work_max = self.guard.check(self.state, at_time, self.loop["gravity_work_max"])
+        if on_grid:
+            self.loop["gravity_work_max"] = work_max
         if fault is not None:
             touching = self.blowup.contacts_of(self.state, fault.particle)
             self.fail(f"blow-up ({fault.what}) at step {step} (t = {at_time:.6g} s): {fault.detail}; "
@@ -1284,12 +1334,12 @@ class _RunLoop:
                       f"step may be too large: {sim.suggested_time_step()}")
 
     # -- the loop ----------------------------------------------------------------
-    def next_chunk(self, chunk_goal):
-        """(steps, threads, probing) of the next chunk: up to the next energy sample,
-        frame or checkpoint, at most ``chunk_goal`` steps; a probe of the other thread
-        count runs a short chunk, since it only has to time it."""
+    def next_chunk(self):
+        """(steps, threads, probing) of the next chunk: up to the next multiple of
+        check_steps, frame or checkpoint (the kernel takes the energy samples on its way);
+        a probe of the other thread count runs a short chunk, since it only has to time it."""
         steps, loop = self.loop["steps"], self.loop
-        goal = min(self.total_steps, (steps // self.sample_steps + 1) * self.sample_steps, steps + chunk_goal)
+        goal = min(self.total_steps, (steps // self.check_steps + 1) * self.check_steps)
         if self.frames_on:
             goal = min(goal, max(steps + 1, self.frame_step(loop["frames"])))
         if self.checkpoint_steps:
@@ -1311,7 +1361,8 @@ class _RunLoop:
         separating = self.stop_at_separation and (taken < chunk or (
             stats[kernel.FIRST_CONTACT_TIME] >= 0.0 and state.count_contacts() == 0))
         at_frame = self.frames_on and steps >= self.frame_step(loop["frames"])
-        if steps % self.sample_steps == 0 or steps == self.total_steps or at_frame or separating:
+        # every sample_steps the kernel has taken the sample
+        if steps % self.sample_steps != 0 and (steps == self.total_steps or at_frame or separating):
             self.energy.append((now, state.kinetic_energy(self.scene.inertia)))
         if at_frame:
             self.on_frame(now, state)
@@ -1329,18 +1380,17 @@ class _RunLoop:
         last_checkpoint_wall = started
         separated, completing = False, False
         copied_wall, copy_seconds = started, 0.0
-        chunk_goal = min(self.chunk_steps, 100)  # grown to about 0.2 s of wall time per chunk
         try:
             while loop["steps"] < self.total_steps:
                 steps = loop["steps"]
-                chunk, chunk_threads, probing = self.next_chunk(chunk_goal)
+                chunk, chunk_threads, probing = self.next_chunk()
                 trace = np.zeros((chunk, len(kernel.TRACE_COLUMNS))) if self.scene.trace else self.no_trace
                 chunk_started = wallclock.perf_counter()
                 # compiled code never sees a signal before it returns anyway: held, a
                 # Ctrl-C is delivered here after the call, never inside numba's dispatcher
                 # (which then returned 'a result with an exception set', a SystemError)
                 with _interrupts_deferred():
-                    taken, needs_rebuild = self.call(steps, chunk, completing, trace, chunk_threads)
+                    taken, needs_rebuild = self.call(steps, chunk, completing, trace, chunk_threads, sampled=True)
                 self.loop_threads.record(chunk_threads, taken, wallclock.perf_counter() - chunk_started)
                 if self.scene.trace:
                     self.trace_chunks.append(trace[:taken])
@@ -1354,9 +1404,7 @@ class _RunLoop:
                     sim.rebuild(state)
                     completing = True  # the next call completes the step from its forces
                     continue
-                if taken == chunk and not probing and wallclock.perf_counter() - chunk_started < 0.1:
-                    chunk_goal = min(self.chunk_steps, chunk_goal * 2)
-                self.check(steps)
+                self.check(steps, on_grid=steps % self.check_steps == 0 or steps == self.total_steps)
                 separating = self.record(steps, taken, chunk)
                 checkpoint_due = policy is not None and not separating and steps < self.total_steps and (
                     (self.checkpoint_steps and steps % self.checkpoint_steps == 0)

@@ -432,12 +432,13 @@ def near_planes(positions, radii, wall_point, wall_normal, margin):
 
 @numba.njit(cache=True)
 def _triangle_box_distance_squared(p, radius_plus_skin, lower, upper):
+    # products, not ** 2 (a call of the C library's pow in numba's code)
     d = 0.0
     for axis in range(3):
         if p[axis] < lower[axis]:
-            d += (lower[axis] - p[axis]) ** 2
+            d += (lower[axis] - p[axis]) * (lower[axis] - p[axis])
         elif p[axis] > upper[axis]:
-            d += (p[axis] - upper[axis]) ** 2
+            d += (p[axis] - upper[axis]) * (p[axis] - upper[axis])
     return d
 
 
@@ -449,7 +450,8 @@ def _scan_triangles(point, reach, triangles, lower, upper, out, write):
     for t in range(triangles.shape[0]):
         if _triangle_box_distance_squared(point, reach, lower[t], upper[t]) < reach * reach:
             cx, cy, cz, feature = triangle_closest_point(point[0], point[1], point[2], triangles, t)
-            if (point[0] - cx) ** 2 + (point[1] - cy) ** 2 + (point[2] - cz) ** 2 < reach * reach:
+            dx, dy, dz = point[0] - cx, point[1] - cy, point[2] - cz
+            if dx * dx + dy * dy + dz * dz < reach * reach:
                 if write:
                     out[found] = t
                 found += 1

@@ -120,6 +120,15 @@ def linear_damping_ratio(restitution: float) -> float:
     return _damping_for(restitution, linear_dashpot_restitution, _ZETA_CACHE)
 
 
+@numba.njit(cache=True, inline="always")
+def _tsuji_force(x, v, alpha):
+    """x^1.5 + alpha x^0.25 v (x clipped at 0), x^0.25 from two square roots: a float
+    power is a call of the C library's pow, and five of them a step made this solution
+    0.1 s of every run's set-up (61 bisection steps)."""
+    quarter = math.sqrt(math.sqrt(max(x, 0.0)))
+    return max(x, 0.0) * quarter * quarter + alpha * quarter * v
+
+
 @numba.njit(cache=True)
 def _hertz_dashpot_restitution(alpha):
     """Restitution of x'' = -f, f = max(x^1.5 + alpha x^0.25 x', 0), x(0)=0, x'(0)=1.
@@ -136,16 +145,16 @@ def _hertz_dashpot_restitution(alpha):
     force_old = 0.0
     for _ in range(50_000_000):
         x0, v0 = x, v
-        k1x, k1v = v, -max(max(x, 0.0) ** 1.5 + alpha * max(x, 0.0) ** 0.25 * v, 0.0)
+        k1x, k1v = v, -max(_tsuji_force(x, v, alpha), 0.0)
         x1, v1 = x + 0.5 * h * k1x, v + 0.5 * h * k1v
-        k2x, k2v = v1, -max(max(x1, 0.0) ** 1.5 + alpha * max(x1, 0.0) ** 0.25 * v1, 0.0)
+        k2x, k2v = v1, -max(_tsuji_force(x1, v1, alpha), 0.0)
         x2, v2 = x + 0.5 * h * k2x, v + 0.5 * h * k2v
-        k3x, k3v = v2, -max(max(x2, 0.0) ** 1.5 + alpha * max(x2, 0.0) ** 0.25 * v2, 0.0)
+        k3x, k3v = v2, -max(_tsuji_force(x2, v2, alpha), 0.0)
         x3, v3 = x + h * k3x, v + h * k3v
-        k4x, k4v = v3, -max(max(x3, 0.0) ** 1.5 + alpha * max(x3, 0.0) ** 0.25 * v3, 0.0)
+        k4x, k4v = v3, -max(_tsuji_force(x3, v3, alpha), 0.0)
         x = x + h / 6.0 * (k1x + 2 * k2x + 2 * k3x + k4x)
         v = v + h / 6.0 * (k1v + 2 * k2v + 2 * k3v + k4v)
-        force = max(x, 0.0) ** 1.5 + alpha * max(x, 0.0) ** 0.25 * v
+        force = _tsuji_force(x, v, alpha)
         if v < 0.0 and (force <= 0.0 or x <= 0.0):
             frac = force_old / (force_old - force) if force_old != force else 1.0
             return -(v0 + frac * (v - v0))
