@@ -13,7 +13,7 @@ import pytest
 from conftest import contact_count
 from minidem.results import analysis
 from minidem.scene import scenario
-from minidem.engine import simulation
+from minidem.engine import integrate, simulation
 
 GLASS = {"youngs_modulus": 70e9, "poisson_ratio": 0.3, "density": 2650.0}
 RADIUS, SPEED = 0.025, 5.0
@@ -406,6 +406,51 @@ def test_same_bits_on_one_and_two_threads(monkeypatch):
         assert np.array_equal(runs[0].position, other.position)
         assert np.array_equal(runs[0].velocity, other.velocity)
         assert np.array_equal(runs[0].angular_velocity, other.angular_velocity)
+        # the kinetic-energy samples the compiled loop takes (blocked sums) too
+        assert np.array_equal(runs[0].energy, other.energy)
+
+
+def test_energy_samples_taken_in_the_loop_are_the_kinetic_energy_at_their_step():
+    # The kernel takes the run's kinetic-energy samples without returning to Python: each
+    # particle's energy as it is finished (closing kick, before the next step's drift),
+    # summed by fixed blocks. Reference: the state's kinetic energy computed from its
+    # velocities after the step (integrate.kinetic_energy, the same block order), read
+    # between chunks of one step each. The samples must be those values at those steps,
+    # bit for bit, and a run cut into chunks differently must give the same series.
+    scene = scenario.load_scene("scenarios/bench/settle.toml", DEEP_PILE[1:] + ["fill.0.count=60", "run.end_time=0.004"]
+                                + ONE_THREAD)
+    sim = simulation.Simulation(scene)
+    after_step = {}
+
+    def read(steps, total, contacts):
+        after_step[steps] = integrate.kinetic_energy(scene.mass, scene.inertia, sim.state.velocity,
+                                                     sim.state.angular_velocity)
+
+    stepwise = sim.run(chunk_steps=1, progress=read)
+    whole = simulation.Simulation(scene).run()
+    assert np.array_equal(stepwise.energy, whole.energy)
+    dt = sim.dt
+    sampled = 0
+    for time, energy in stepwise.energy[1:]:
+        step = int(round(time / dt))
+        assert energy == after_step[step], (step, energy, after_step[step])
+        sampled += 1
+    assert sampled >= 200 and stepwise.energy[:, 1].max() > 0.0
+
+
+def test_touching_flags_follow_the_contacts():
+    # The reaction gather reads only the rows flagged touching (reaction_in_use, in the
+    # transposed order). After a run into the pile the flag of every listed pair must be
+    # whether it touches (overlap > 0: hm has no reach), and a pair apart holds no reaction.
+    scene = scenario.load_scene("scenarios/bench/settle.toml", DEEP_PILE[1:] + ["fill.0.count=100", "run.end_time=0.03"]
+                                + ONE_THREAD)
+    sim = simulation.Simulation(scene)
+    sim.run()
+    offsets, partners, history, overlap, reaction, slot, reverse_offsets, in_use = sim.state.pairs
+    touching = overlap > 0.0
+    assert touching.sum() > 20 and (~touching).sum() > 20
+    assert np.array_equal(in_use[slot] == 1, touching)
+    assert not reaction[slot[~touching]].any()
 
 
 def test_second_pass_is_shared_evenly_between_the_threads():

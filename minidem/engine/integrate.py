@@ -33,17 +33,18 @@ OPENING_KICK = {"velocity_verlet": 0.5, "symplectic_euler": 1.0, "analytic_fligh
 
 
 @numba.njit(cache=True, inline="always")
-def kick(p, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, duration, spin):
-    """v += F duration / m (and the spin, when the scene has torques)."""
+def kick_by(p, velocity, angular_velocity, force_on_p, torque_on_p, inverse_mass, inverse_inertia, duration, spin):
+    """v += F duration / m (and the spin, when the scene has torques), F and the torque
+    given as 3-tuples (the kernel's force pass hands them over without storing them)."""
     scale = duration * inverse_mass[p]
-    velocity[p, 0] += scale * force[p, 0]
-    velocity[p, 1] += scale * force[p, 1]
-    velocity[p, 2] += scale * force[p, 2]
+    velocity[p, 0] += scale * force_on_p[0]
+    velocity[p, 1] += scale * force_on_p[1]
+    velocity[p, 2] += scale * force_on_p[2]
     if spin:
         scale = duration * inverse_inertia[p]
-        angular_velocity[p, 0] += scale * torque[p, 0]
-        angular_velocity[p, 1] += scale * torque[p, 1]
-        angular_velocity[p, 2] += scale * torque[p, 2]
+        angular_velocity[p, 0] += scale * torque_on_p[0]
+        angular_velocity[p, 1] += scale * torque_on_p[1]
+        angular_velocity[p, 2] += scale * torque_on_p[2]
 
 
 @numba.njit(cache=True, inline="always")

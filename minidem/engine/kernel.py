@@ -33,7 +33,8 @@ of consecutive particles per thread:
 
     compute_forces      particle i owns its walls and the pairs (i, j > i) of its row of
                         the Verlet half list: it computes them through the one contact
-                        evaluation (``evaluate_contact``), writes its own force, and
+                        evaluation (``evaluate_contact``), writes its own force (or
+                        hands it to finish_range in registers, see below), and
                         stores each pair's force and j's torque in j's row of the
                         transposed list, marked touching (reaction_in_use)
     finish_kick_drift   particle p adds the reactions of its touching pairs (i < p, p)
@@ -74,7 +75,7 @@ from minidem.geometry.primitives import (
     rotate_slot_into_plane,
     triangle_closest_point,
 )
-from minidem.engine.integrate import block_sum, drift, kick, particle_kinetic_energy
+from minidem.engine.integrate import block_sum, drift, kick_by, particle_kinetic_energy
 # the blocks of particles per thread are chosen outside the kernel (advance's bounds and
 # first_partner); named here too, where the kernel's two passes are described
 from minidem.engine.blocks import defer_finishing  # noqa: F401
@@ -176,7 +177,11 @@ def engaged_above(constants, row):
 
 @numba.njit(cache=True, inline="always")
 def finite(fn, ftx, fty, ftz):
-    return math.isfinite(fn) and math.isfinite(ftx) and math.isfinite(fty) and math.isfinite(ftz)
+    """Whether a contact's force is finite, as one test on the sum: it is NaN or infinite
+    when a term is (inf - inf is NaN), and otherwise only when finite terms overflow
+    (a force near 1e308 N, a contact blown up all the same). Four tests, each a branch,
+    ran for every contact."""
+    return math.isfinite(fn + ftx + fty + ftz)
 
 
 @numba.njit(cache=True, inline="always")
@@ -527,11 +532,15 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                     wj = (angular_velocity[j, 0], angular_velocity[j, 1], angular_velocity[j, 2])
                 mj = mass[j]
                 lever_j = rj - 0.5 * overlap
+                # R* = ri rj / (ri + rj) and m* = mi mj / (mi + mj) through one reciprocal:
+                # a division fewer per contact (divisions and square roots share one unit)
+                mass_sum = mi + mj
+                shared = 1.0 / (reach * mass_sum)
                 acc, on_i, direction, couple, _, _, _, ok = evaluate_contact(
                     acc, constants[pair_row[mat, material[j]]], pair_history[e], overlap, previous,
                     (dx * inverse, dy * inverse, dz * inverse), True,
                     vi, wi, (velocity[j, 0], velocity[j, 1], velocity[j, 2]), wj,
-                    ri - 0.5 * overlap, lever_j, ri * rj / reach, mi * mj / (mi + mj), dt, stats)
+                    ri - 0.5 * overlap, lever_j, ri * rj * mass_sum * shared, mi * mj * reach * shared, dt, stats)
                 if not ok:
                     fault(status, NON_FINITE_FORCE, i, j, PARTICLE)
                     break
@@ -551,18 +560,20 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                     reaction[r, 5] = lever_j * direction[2]
 
         fx, fy, fz, tx, ty, tz, count = acc
-        force[i, 0], force[i, 1], force[i, 2] = fx, fy, fz
-        torque[i, 0], torque[i, 1], torque[i, 2] = tx, ty, tz
         active += count
         if first_partner[i] >= first:
             moved_too_far += finish_range(i, i + 1, last, first_partner, particles, pairs, dt, drift_on,
-                                          position_at_build, half_skin_squared, energy_step)
+                                          position_at_build, half_skin_squared, energy_step, True,
+                                          (fx, fy, fz, tx, ty, tz))
+        else:  # finished by finish_kick_drift, from the force stored here
+            force[i, 0], force[i, 1], force[i, 2] = fx, fy, fz
+            torque[i, 0], torque[i, 1], torque[i, 2] = tx, ty, tz
     return active, moved_too_far
 
 
 @numba.njit(cache=True, fastmath=FAST, inline="always")
 def finish_range(first, last, finished_from, first_partner, particles, pairs, dt, drift_on, position_at_build,
-                 half_skin_squared, energy_step):
+                 half_skin_squared, energy_step, own_given, own):
     """Particles first..last-1, except those whose first partner is at ``finished_from``
     or later (finished in the force pass): add the pair reactions and apply the closing
     kick; with ``drift_on`` also the next step's opening half kick and drift (the same
@@ -571,7 +582,14 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
     the neighbour list was built (0 without drift). ``energy_step`` = (sampling,
     inertia, particle_energy): when sampling, each particle's kinetic energy at the end of
     the step (after the closing kick) goes to particle_energy, fused here rather than a
-    pass of its own (see ``advance``)."""
+    pass of its own (see ``advance``).
+
+    ``own_given``: the force pass finishing its particle i (first = i, last = i + 1) hands
+    over ``own`` = (force, torque) of i's own contacts and gravity in registers; else
+    they are read from the force and torque arrays. The total is stored only when the
+    step is the call's last (no drift: the next call's opening kick and the run between
+    chunks read it); with the drift fused nothing reads it before the next force pass
+    overwrites it (48 bytes a particle-step of memory traffic saved)."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     sampling, inertia, particle_energy = energy_step
     offsets, neighbours, history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use = pairs
@@ -581,6 +599,11 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
             continue
         if first_partner[p] >= finished_from:
             continue
+        if own_given:
+            fx, fy, fz, tx, ty, tz = own
+        else:
+            fx, fy, fz = force[p, 0], force[p, 1], force[p, 2]
+            tx, ty, tz = torque[p, 0], torque[p, 1], torque[p, 2]
         if PAIRS:
             # the reactions of the pairs (i < p, p) in ascending i, stored contiguously
             # (the reverse rows), so the same sum whatever the thread count. Only the
@@ -591,8 +614,6 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
             # memory. A branch: reading a zero row instead, chosen without one, was 10 %
             # slower there (the loads wait for the flag), and in a pile, where about half
             # the listed pairs touch, the branch measured no slower than reading every row.
-            fx, fy, fz = force[p, 0], force[p, 1], force[p, 2]
-            tx, ty, tz = torque[p, 0], torque[p, 1], torque[p, 2]
             for k in range(reverse_offsets[p], reverse_offsets[p + 1]):
                 if k < 0:  # never (non_negative)
                     continue
@@ -604,15 +625,16 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
                         tx += reaction[k, 3]
                         ty += reaction[k, 4]
                         tz += reaction[k, 5]
+        if not drift_on:
             force[p, 0], force[p, 1], force[p, 2] = fx, fy, fz
             torque[p, 0], torque[p, 1], torque[p, 2] = tx, ty, tz
         if CLOSING_KICK > 0.0:
-            kick(p, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, CLOSING_KICK * dt,
-                 SPIN)
+            kick_by(p, velocity, angular_velocity, (fx, fy, fz), (tx, ty, tz), inverse_mass, inverse_inertia,
+                    CLOSING_KICK * dt, SPIN)
         if sampling:
             particle_energy[p] = particle_kinetic_energy(p, mass, inertia, velocity, angular_velocity)
-        if drift_on and kick_drift_one(p, position, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, dt,
-                                        position_at_build, half_skin_squared):
+        if drift_on and kick_drift_one(p, position, velocity, angular_velocity, (fx, fy, fz), (tx, ty, tz),
+                                        inverse_mass, inverse_inertia, dt, position_at_build, half_skin_squared):
             moved_too_far += 1
     return moved_too_far
 
@@ -658,16 +680,18 @@ def finish_kick_drift(particles, pairs, dt, drift_on, position_at_build, half_sk
     moved_too_far = 0
     for block in particle_range(threads):
         moved_too_far += finish_range(bounds[block], bounds[block + 1], bounds[block], first_partner, particles,
-                                      pairs, dt, drift_on, position_at_build, half_skin_squared, energy_step)
+                                      pairs, dt, drift_on, position_at_build, half_skin_squared, energy_step, False,
+                                      (0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
     return moved_too_far
 
 
 @numba.njit(cache=True, inline="always")
-def kick_drift_one(p, position, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, dt,
-                   position_at_build, half_skin_squared):
-    """Opening kick and drift of particle p; True when it has moved more than half
-    the skin since the neighbour list was built."""
-    kick(p, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, OPENING_KICK * dt, SPIN)
+def kick_drift_one(p, position, velocity, angular_velocity, force_on_p, torque_on_p, inverse_mass, inverse_inertia,
+                   dt, position_at_build, half_skin_squared):
+    """Opening kick (by the force and torque given, 3-tuples) and drift of particle p;
+    True when it has moved more than half the skin since the neighbour list was built."""
+    kick_by(p, velocity, angular_velocity, force_on_p, torque_on_p, inverse_mass, inverse_inertia, OPENING_KICK * dt,
+            SPIN)
     drift(p, position, velocity, dt)
     if not CHECK_DISPLACEMENT:
         return False
@@ -684,7 +708,8 @@ def kick_drift(particles, dt, position_at_build, half_skin_squared):
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     moved_too_far = 0
     for p in particle_range(position.shape[0]):
-        if kick_drift_one(p, position, velocity, angular_velocity, force, torque, inverse_mass, inverse_inertia, dt,
+        if kick_drift_one(p, position, velocity, angular_velocity, (force[p, 0], force[p, 1], force[p, 2]),
+                          (torque[p, 0], torque[p, 1], torque[p, 2]), inverse_mass, inverse_inertia, dt,
                           position_at_build, half_skin_squared):
             moved_too_far += 1
     return moved_too_far

@@ -42,8 +42,9 @@ def rotate_slot_into_plane(history, o, nx, ny, nz):
     """
     hx, hy, hz = history[o], history[o + 1], history[o + 2]
     before = hx * hx + hy * hy + hz * hz
-    if before == 0.0:
-        return
+    # no early return for an empty slot (it stays zero: after = 0, scale 0): without a
+    # branch the compiler hands the rotated values straight to the law, which reads the
+    # slot next, instead of storing and loading them again
     along = hx * nx + hy * ny + hz * nz
     hx, hy, hz = hx - along * nx, hy - along * ny, hz - along * nz
     after = hx * hx + hy * hy + hz * hz
@@ -63,10 +64,14 @@ def pair_contact_velocity(vix, viy, viz, wix, wiy, wiz, vjx, vjy, vjz, wjx, wjy,
     momentum is conserved. A fixed wall is the partner with v_j = w_j = 0 (then lever_i
     is the sphere's lever arm and lever_j does not matter). Returns (approach rate along
     -n, tangential velocity).
+
+    The two spin terms are one cross product, w_i x (-lever_i n) - w_j x (lever_j n)
+    = n x (lever_i w_i + lever_j w_j): 12 multiplications where two took 18 (this runs
+    for every contact, every step).
     """
-    ax, ay, az = cross(wix, wiy, wiz, -lever_i * nx, -lever_i * ny, -lever_i * nz)
-    bx, by, bz = cross(wjx, wjy, wjz, lever_j * nx, lever_j * ny, lever_j * nz)
-    cx, cy, cz = vix + ax - vjx - bx, viy + ay - vjy - by, viz + az - vjz - bz
+    sx, sy, sz = lever_i * wix + lever_j * wjx, lever_i * wiy + lever_j * wjy, lever_i * wiz + lever_j * wjz
+    ax, ay, az = cross(nx, ny, nz, sx, sy, sz)
+    cx, cy, cz = vix - vjx + ax, viy - vjy + ay, viz - vjz + az
     along = cx * nx + cy * ny + cz * nz
     return -along, (cx - along * nx, cy - along * ny, cz - along * nz)
 

@@ -21,10 +21,16 @@ def coulomb_cap(ftx, fty, ftz, limit):
     """Scale a tangential force back onto the Coulomb cone |Ft| <= limit.
 
     Returns the capped force and whether the cap was active (sliding).
+
+    The test compares squares (limit >= 0 here: mu max(Fn, 0) or a rolling limit), so
+    the square root is taken only for a contact that slides: in a settling pile (settle
+    scene, hm, N = 20,000) four contacts in five stick, and the root was one of eight
+    on each contact's dependency chain.
     """
-    magnitude = norm3(ftx, fty, ftz)
-    if magnitude <= limit:
+    squared = ftx * ftx + fty * fty + ftz * ftz
+    if squared <= limit * limit:
         return ftx, fty, ftz, False
+    magnitude = math.sqrt(squared)
     if magnitude == 0.0:
         return 0.0, 0.0, 0.0, True
     scale = limit / magnitude

@@ -73,14 +73,19 @@ def hertz_normal_force(constants, effective_radius, effective_mass, normal_overl
     With the dashpot the force is clipped at zero (damped_normal_force: a non-adhesive
     contact never pulls), which is what the restitution mapping assumes. Without it
     (e = 1) the force is the elastic one, unchanged.
+
+    Both are written with the contact radius a = sqrt(R* d), K d^1.5 = 4/3 E* a d and
+    sqrt(m* K) d^(1/4) = sqrt(m* 4/3 E* a): two square roots where sqrt(R*), sqrt(d) and
+    the dashpot's took three, and a is the root the tangential stiffness 8 G* a needs
+    too (the compiler computes the same expression once).
     """
-    stiffness = constants[HERTZ_MODULUS] * math.sqrt(effective_radius)
-    root = math.sqrt(normal_overlap)
-    elastic = stiffness * normal_overlap * root
+    contact_radius = math.sqrt(effective_radius * normal_overlap)
+    elastic = constants[HERTZ_MODULUS] * contact_radius * normal_overlap
     if constants[DAMPING] == 0.0:
         return elastic
     return damped_normal_force(
-        elastic, constants[DAMPING] * math.sqrt(effective_mass * stiffness * root) * normal_velocity)
+        elastic, constants[DAMPING] * math.sqrt(effective_mass * constants[HERTZ_MODULUS] * contact_radius)
+        * normal_velocity)
 
 
 # ---------------------------------------------------------------------------------
@@ -139,8 +144,17 @@ def _step_mean_sqrt(overlap_start, overlap_end):
     midpoint value integrates it with an error of dt^3 a'' per step, and a'' ~ t^(-3/2)
     sums to O(dt^1.5) over the contact (measured: et order 1.5 at 5 deg). The exact mean
     over the step leaves the smooth O(dt^2) part."""
-    start = math.sqrt(max(overlap_start, 0.0))
-    end = math.sqrt(max(overlap_end, 0.0))
+    return _mean_of_roots(math.sqrt(max(overlap_start, 0.0)), math.sqrt(max(overlap_end, 0.0)))
+
+
+@numba.njit(cache=True, inline="always")
+def _mean_of_roots(start, end):
+    """_step_mean_sqrt from the square roots at the start and the end of the step: of the
+    overlaps, or of R* times them (the mean is homogeneous of degree one, so it is then
+    sqrt(R*) times the mean of sqrt(d)). The Hertz laws pass the contact radii
+    a = sqrt(R* d): the end's is the root their normal force takes (hertz_normal_force),
+    computed once when written as the same expression (called in contact, d > 0, so
+    without the max(d, 0), which would make it another one)."""
     if start + end == 0.0:
         return 0.0
     return (2.0 / 3.0) * (start * start + start * end + end * end) / (start + end)
@@ -278,8 +292,11 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
     # 8 G* a averaged over the step (the overlap linear in it): with the end-of-step
     # radius the update is only first order in dt, and with the mid-step radius the
     # sqrt(t) growth of a after first touch costs half an order (see _step_mean_sqrt)
-    stick_stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius) * _step_mean_sqrt(
-        normal_overlap - normal_overlap_increment, normal_overlap)
+    # (a = sqrt(R* d) at both ends: _step_mean_sqrt times sqrt(R*), the end's root shared
+    # with hertz_normal_force)
+    stick_stiffness = constants[SHEAR_MODULUS] * _mean_of_roots(
+        math.sqrt(effective_radius * max(normal_overlap - normal_overlap_increment, 0.0)),
+        math.sqrt(effective_radius * normal_overlap))
     limit = mu * max(normal_force, 0.0)
     reading = int(constants[SPECIAL_CASE])
 
@@ -452,9 +469,12 @@ def hm_force(constants, effective_radius, effective_mass, normal_overlap, normal
     normal_force = hertz_normal_force(constants, effective_radius, effective_mass, normal_overlap, normal_velocity)
     # eq 39 integrated with the stiffness averaged over the step (as hmd's): the
     # end-of-step contact radius makes the update first order in dt, the mid-step one
-    # order 1.5 (measured against the reference; see _step_mean_sqrt)
-    stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius) * _step_mean_sqrt(
-        normal_overlap - normal_overlap_increment, normal_overlap)
+    # order 1.5 (measured against the reference; see _step_mean_sqrt). The mean is that of
+    # the contact radius a = sqrt(R* d), whose value at the end of the step
+    # hertz_normal_force has computed (normal_overlap > 0: the law acts in contact only)
+    stiffness = constants[SHEAR_MODULUS] * _mean_of_roots(
+        math.sqrt(effective_radius * max(normal_overlap - normal_overlap_increment, 0.0)),
+        math.sqrt(effective_radius * normal_overlap))
     ftx, fty, ftz = incremental_spring(history, stiffness, tangential_increment,
                                        constants[MU] * max(normal_force, 0.0))
     return normal_force, ftx, fty, ftz

@@ -8,7 +8,9 @@ the same physics written as single laws; two combinations reproduce two of them:
     hertz + tsuji + mindlin            = hm  (to round-off: the dashpot coefficient is
                                               computed from the tangent stiffness kn the
                                               normal part passes on, sqrt(m* kn / 1.5),
-                                              instead of sqrt(m* K sqrt(d)))
+                                              instead of hm's sqrt(m* 4/3 E* a),
+                                              a = sqrt(R* d); the normal and tangential
+                                              stiffnesses differ by round-off too)
 """
 
 import math
