@@ -76,8 +76,11 @@ def command_run(args) -> int:
 
     from minidem.engine import checkpoint
 
+    from minidem.engine import warmup
+
     data = scenario.read_toml(args.file)
     if sweep.has_sweep(data):
+        warmup.dismiss()  # a sweep's cases run in their own processes
         if args.resume and args.restart:
             raise scenario.ScenarioError(f"{args.file}: --resume and --restart contradict each other: a sweep "
                                          "resumes by default; --restart runs every case again")
@@ -85,8 +88,6 @@ def command_run(args) -> int:
     for option, given in (("--scheduler", args.scheduler), ("--restart", args.restart), ("--workers", args.workers)):
         if given is not None and given is not False:
             warnings.warn(f"{option} ignored: {args.file} has no [sweep] table (a single run)")
-    from minidem.engine import warmup
-
     # on a fresh install the scene's kernel compiles in a helper while the check of
     # overlapping spheres compiles the neighbour search here
     scene = scenario.load_scene(args.file, args.set, args.out, while_checking=functools.partial(
@@ -428,15 +429,21 @@ class _PipeClosedSink:
 
 
 def main(argv=None) -> int:
+    if argv is None and not isinstance(sys.stdout, _PipeClosedSink):  # the console command itself
+        sys.stdout = _PipeClosedSink(sys.stdout)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from minidem.engine import warmup
+
+    if args.handler is command_run:
+        # on a fresh install, the helper that compiles beside the run starts before the
+        # engine is imported here (minidem.engine.warmup.prestart)
+        warmup.prestart()
     from minidem.contact.laws import LawError
     from minidem.files import OutputError
     from minidem.scene.scenario import ScenarioError
     from minidem.engine.simulation import RunFailure
 
-    if argv is None and not isinstance(sys.stdout, _PipeClosedSink):  # the console command itself
-        sys.stdout = _PipeClosedSink(sys.stdout)
-    parser = build_parser()
-    args = parser.parse_args(argv)
     with warnings.catch_warnings():
         warnings.simplefilter("always")
         warnings.showwarning = lambda message, *a, **k: print(f"minidem: warning: {message}", file=sys.stderr)
@@ -466,7 +473,40 @@ def main(argv=None) -> int:
             print(f"minidem: internal error: {type(exc).__name__}: {exc} (rerun with --debug for the traceback)",
                   file=sys.stderr)
             return EXIT_FAILURE
+        finally:
+            if args.handler is command_run:  # a prestarted helper no job was given to
+                warmup.dismiss()
+
+
+def console() -> None:
+    """The ``minidem`` command: :func:`main`, then the process ends without tearing the
+    interpreter down.
+
+    Why: after a run whose kernel was just compiled, Python's own exit (collecting the
+    cycles numba's compiler leaves, then freeing every module and the objects they hold)
+    took 0.3-0.6 s of a first run of scenarios/oblique.toml, and 0.1-0.2 s of every later
+    run (2-core AMD EPYC): memory the operating system takes back at once anyway. What an
+    exit must do is still done first: the ``atexit`` handlers (helpers and pools of worker
+    processes stopped, logging flushed) and the standard streams flushed. Every file
+    minidem writes is closed before ``main`` returns. A thread still running (not a
+    daemon) is waited for, as Python would: the exit is then Python's own."""
+    code = main()
+    import atexit
+    import threading
+
+    if any(thread.is_alive() and not thread.daemon for thread in threading.enumerate()
+           if thread is not threading.main_thread()):
+        sys.exit(code)
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a reader gone (stdout is handled by _PipeClosedSink) or a closed stream
+            pass
+    if code is not None and not isinstance(code, int):
+        sys.exit(code)  # what sys.exit makes of anything else
+    os._exit(code or EXIT_OK)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    console()

@@ -63,3 +63,33 @@ def test_inlined_function_gives_the_plain_result():
         return inner(x, n) + inner(x + 1.0, n)
 
     assert outer(2.5, 7) == _branchy(2.5, 7) + _branchy(3.5, 7)
+
+
+def test_the_callee_is_copied_once_per_inlining(monkeypatch):
+    # numba's inline_ir copies the callee twice, the second copy only to return it, and
+    # its callers discard it: with compile_speed that copy is not made. Counted over a
+    # compile inlining the callee twice: half the block copies of numba's own way, and
+    # the same result.
+    copier = inline_closurecall.copy
+    plain_deepcopy = copy.deepcopy
+    copied = []
+
+    def counting(value, memo=None):
+        if isinstance(value, ir.Block):
+            copied.append(value)
+        return plain_deepcopy(value, memo)
+
+    monkeypatch.setattr(compile_speed.copy, "deepcopy", counting)
+    counts = {}
+    for skip in (False, True):
+        monkeypatch.setattr(type(copier), "skip_discarded_copy", skip)
+        copied.clear()
+        inner = numba.njit(inline="always")(_branchy)
+
+        @numba.njit
+        def outer(x, n):
+            return inner(x, n) + inner(x + 1.0, n)
+
+        assert outer(2.5, 7) == _branchy(2.5, 7) + _branchy(3.5, 7)
+        counts[skip] = len(copied)
+    assert counts[False] > 0 and counts[True] * 2 == counts[False], counts

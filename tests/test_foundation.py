@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import subprocess
+import sys
 import warnings
 from pathlib import Path
 
@@ -289,6 +290,32 @@ def test_run_piped_into_a_closed_reader_still_writes_its_results(tmp_path):
     assert piped.returncode == 0, piped.stderr
     assert "Error" not in piped.stderr
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["law"] == "hmd"
+
+
+_CONSOLE = """
+import atexit, sys
+atexit.register(print, "exit handler ran")
+sys.argv = ["minidem", *sys.argv[1:]]
+from minidem.cli import console
+console()
+"""
+
+
+@pytest.mark.parametrize("argv, code", [(["laws"], 0), (["run", "nowhere.toml"], 2)])
+def test_the_command_ends_after_its_exit_handlers_with_its_output_and_exit_code(tmp_path, argv, code):
+    # the console command leaves without Python's teardown (minidem.cli.console): what an
+    # exit must do is still done. Output into a pipe is block-buffered: everything printed
+    # arrives, then what the exit handlers print, and the exit code is main's (2 for a
+    # scenario file that does not exist).
+    done = subprocess.run([sys.executable, "-c", _CONSOLE, *argv], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == code, done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[-1] == "exit handler ran", done.stdout[-500:]
+    if code == 0:  # `minidem laws`: every built-in law listed before it
+        assert {"hmd", "hm", "ls"} <= {word.strip(":") for line in lines for word in line.split()}
+    else:
+        assert "nowhere.toml" in done.stderr
 
 
 def test_bench_sizes_are_checked_and_the_million_sphere_variant_fits_its_box():

@@ -118,3 +118,77 @@ def test_the_kernel_loads_the_law_the_helper_compiled(tmp_path):
         assert misses == 1, found
     else:
         assert hits >= 1 and misses == 0, found
+
+
+_HELPER_IMPORTS = """
+import subprocess
+import minidem
+from minidem.engine import warmup
+# how every helper process is started (warmup._spawn, warmup.prestart)
+helper = warmup._python("import minidem; print(minidem.__file__)", stdin=subprocess.DEVNULL, stdout=subprocess.PIPE)
+print(minidem.__file__)
+print(helper.communicate()[0].decode().strip())
+"""
+
+
+def test_the_helper_imports_the_minidem_the_run_imported(tmp_path):
+    """`minidem run` started from a folder holding another ``minidem/`` (the clone a user
+    installed with ``pip install .``): the helper must import the package the run
+    imported, not the folder's. numba caches a function under its source file's path,
+    so a helper compiling the folder's copy filled a cache the run never reads, and the
+    run compiled the law and the guard again (found timing a fresh clone's first run)."""
+    clone = tmp_path / "clone"
+    (clone / "minidem").mkdir(parents=True)
+    (clone / "minidem" / "__init__.py").write_text("# a stale copy of the package, next to the scene files\n")
+    script = tmp_path / "run.py"  # like the console script: the working directory is not on the run's sys.path
+    script.write_text(_HELPER_IMPORTS)
+    done = subprocess.run([sys.executable, str(script)], cwd=clone, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    run_package, helper_package = done.stdout.split()
+    assert "clone" not in run_package, run_package
+    assert helper_package == run_package
+
+
+_PRESTARTED_RUN = """
+import json, sys
+from minidem.engine import warmup
+plain, started = warmup._python, []
+
+
+def spy(code, **kwargs):  # every helper process, and whether this process had imported numba then
+    started.append(["numba" in sys.modules, "warmup.serve()" in code])
+    return plain(code, **kwargs)
+
+
+warmup._python = spy
+from minidem import cli
+code = cli.main(["run", "scenarios/oblique.toml", "--out", sys.argv[1], "--quiet"])
+from minidem.contact import laws
+force = laws.registry().entry("hmd").law.force
+print(json.dumps({"code": code, "started": started,
+                  "force": [sum(force.stats.cache_hits.values()), sum(force.stats.cache_misses.values())]}))
+"""
+
+
+def test_a_first_run_starts_its_helper_before_importing_the_engine(tmp_path):
+    """`minidem run` on a fresh install starts the helper before it imports numba (its
+    imports then overlap the run's own), hands it the law once it has read the scene,
+    and the run's kernel loads the law from the cache; with the caches filled no helper
+    process is started at all."""
+    env = dict(os.environ, MINIDEM_CACHE_DIR=str(tmp_path / "minidem"), NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    runs = []
+    for _ in range(2):
+        done = subprocess.run([sys.executable, "-c", _PRESTARTED_RUN, str(tmp_path / "out")], env=env,
+                              capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        runs.append(json.loads(done.stdout.strip().splitlines()[-1]))
+    first, again = runs
+    assert first["code"] == 0 and again["code"] == 0, runs
+    if (os.cpu_count() or 1) < 2:  # no second CPU: no helper, the kernel compiles the law itself
+        assert first["started"] == [] and first["force"][1] == 1, first
+    else:
+        # one process, the prestarted one, started before numba was imported here
+        assert first["started"] == [[False, True]], first
+        hits, misses = first["force"]
+        assert hits >= 1 and misses == 0, first
+    assert again["started"] == [], again

@@ -39,16 +39,31 @@ class _BlockCopier:
     ``inline_ir`` call (``memos`` is reset around every call, so a copy is never reused
     for a later inlining, which mutates its copy)."""
 
+    # ``inline_ir`` copies the callee twice: the copy it inlines, and a copy of that copy
+    # before it is changed, returned as the first item of its result "unmutated". Every
+    # caller in numba (InlineInlinables through ``inline_function``, the typed inliner of
+    # overloads) discards that item, so the second copy is not made: the item is then the
+    # inlined copy itself. 0.15-0.2 s of CPU in the first run of scenarios/oblique.toml
+    # (a twentieth of its kernel's compile), the IR numba goes on with unchanged.
+    skip_discarded_copy = True
+
     def __init__(self):
         self.memos: dict[int, dict] | None = None
+        # the blocks copied in the current inline_ir call, by id (kept alive here)
+        self.made: dict[int, ir.Block] | None = None
 
     def __getattr__(self, name):
         return getattr(copy, name)
 
     def deepcopy(self, value, memo=None):
         if memo is None and self.memos is not None and isinstance(value, ir.Block):
+            if self.skip_discarded_copy and self.made is not None and id(value) in self.made:
+                return value  # the copy of a copy: the discarded "unmutated" callee
             # keyed by the scope's id: the memo keeps the scope alive, so the id is not reused
-            memo = self.memos.setdefault(id(value.scope), {})
+            made = copy.deepcopy(value, self.memos.setdefault(id(value.scope), {}))
+            if self.made is not None:
+                self.made[id(made)] = made
+            return made
         return copy.deepcopy(value, memo)
 
 
@@ -66,11 +81,11 @@ def install() -> bool:
 
     @functools.wraps(plain_inline_ir)
     def inline_ir(self, *args, **kwargs):
-        outer, copier.memos = copier.memos, {}
+        outer, copier.memos, outer_made, copier.made = copier.memos, {}, copier.made, {}
         try:
             return plain_inline_ir(self, *args, **kwargs)
         finally:
-            copier.memos = outer
+            copier.memos, copier.made = outer, outer_made
 
     worker.inline_ir = inline_ir
     inline_closurecall.copy = copier

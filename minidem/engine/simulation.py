@@ -159,8 +159,7 @@ class RunFailure(MinidemError):
 
 def cache_directory() -> Path:
     """Where specialised kernels and numba's cache of them live (MINIDEM_CACHE_DIR)."""
-    root = os.environ.get("MINIDEM_CACHE_DIR") or Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "minidem"
-    path = Path(root) / "kernels"
+    path = warmup.kernel_cache_path()
     path.mkdir(parents=True, exist_ok=True)
     return path
 

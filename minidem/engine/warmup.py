@@ -27,6 +27,15 @@ helper is done (:func:`kernel_helper`); the guard's two functions go to whicheve
 two is free first. First run of scenarios/settle.toml: the two
 compilations side by side instead of one after the other.
 
+The law's force function is compiled on its own and linked into the kernel, so the
+helper compiles it first (oblique: the hmd law, ~1.2 s) and the kernel's typing waits
+for it (:meth:`Helper.law_compiled`). On a fresh install ``minidem run`` starts the helper
+before it imports numba and the engine (:func:`prestart`): the helper imports them while
+the run does, and is handed its job (either of the two above) once the run has read the
+scene; started after those imports, it reached the law ~0.35 s after the kernel's typing
+did. The helper imports from the run's ``sys.path`` (:func:`_python`), so that it
+compiles, and numba caches, the very files the run loads.
+
 Only the wall time changes (the CPU time grows by the helper's own start, ~0.5 s): the
 same functions are compiled for the same argument types and the run loads the same
 machine code it would have compiled. A helper that cannot start, fails or compiled
@@ -39,14 +48,16 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import json
 import os
 import pickle
 import select
 import subprocess
 import sys
+from pathlib import Path
 
-import numba
-import numpy as np
+# numba and numpy are imported where they are used: `minidem run` imports this module
+# before them, to start a helper first (prestart)
 
 # the longest a run waits for the helper before compiling what it still needs itself
 WAIT_LIMIT_S = 120.0
@@ -82,6 +93,8 @@ def compile_shared(pairs: bool, meshes: bool) -> None:
     """Compile (into numba's cache) the shared functions a scene with pairs or meshes
     needs, by calling them on two particles with the argument types the engine passes
     (C-contiguous float64 and int64 arrays, a float skin, an int count)."""
+    import numpy as np
+
     from minidem.engine.simulation import pair_index_type
     from minidem.geometry import neighbours
 
@@ -109,6 +122,8 @@ def compile_guard(reverse: bool = False) -> None:
     """Compile (into numba's cache) the blow-up guard's survey and the kinetic energy
     (``reverse``: in the other order, for a second process doing the same, see
     :func:`compile_kernel_of_scene`)."""
+    import numpy as np
+
     from minidem.engine import blowup, integrate
 
     position, vector, scalar = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), np.zeros((2, 3)), np.ones(2)
@@ -183,26 +198,112 @@ class Helper:
         self._release()
 
 
-def _spawn(code: str, stdin_bytes: bytes | None = None, law_first: bool = False) -> Helper:
-    """A helper running ``code`` in this Python, with the same environment, so the same
-    caches (MINIDEM_CACHE_DIR, NUMBA_CACHE_DIR), and ``stdin_bytes`` on its standard input."""
-    try:
-        process = subprocess.Popen([sys.executable, "-c", code],
-                                   stdin=subprocess.DEVNULL if stdin_bytes is None else subprocess.PIPE,
-                                   stdout=subprocess.PIPE if law_first else subprocess.DEVNULL,
-                                   stderr=subprocess.DEVNULL)
-    except OSError:
-        return Helper(None)
-    if stdin_bytes is not None:
+def _python(code: str, stdin, stdout) -> subprocess.Popen:
+    """A process running ``code`` in this Python, with the same environment, so the same
+    caches (MINIDEM_CACHE_DIR, NUMBA_CACHE_DIR).
+
+    It imports from this process's ``sys.path``, not the one ``python -c`` would make: that
+    puts the working directory first, and a user who cloned minidem and installed it with
+    ``pip install .`` runs ``minidem run`` from the clone, whose ``minidem/`` folder the
+    helper would then import instead of the installed package. numba keys its cache on the
+    path of each function's source file, so everything the helper compiled from the
+    clone's files was cached where the run never looks, and the run compiled it all again
+    (the first run of scenarios/oblique.toml: the hmd law and the guard's functions twice,
+    ~2 s more CPU in the run's process, 1.5-2 s more wall time)."""
+    return subprocess.Popen([sys.executable, "-c", f"import sys; sys.path[:] = {list(sys.path)!r}; {code}"],
+                            stdin=stdin, stdout=stdout, stderr=subprocess.DEVNULL)
+
+
+# the jobs a helper takes (functions of this module), by name
+_JOBS = ("compile_for_run", "compile_kernel_of_scene")
+
+
+def _spawn(job: str, arguments: tuple = (), stdin_bytes: bytes | None = None, law_first: bool = False) -> Helper:
+    """A helper doing ``job(*arguments)`` (one of _JOBS) with ``stdin_bytes`` on its
+    standard input: the helper :func:`prestart` started, if there is one, else a new one."""
+    global _PRESTARTED
+    process, _PRESTARTED = _PRESTARTED, None
+    if process is not None and process.poll() is None:
+        # it waits for one line naming its job; what follows is the job's input
+        payload = (json.dumps([job, list(arguments)]) + "\n").encode() + (stdin_bytes or b"")
+    else:
+        try:
+            process = _python(f"from minidem.engine import warmup; warmup.{job}(*{tuple(arguments)!r})",
+                              stdin=subprocess.DEVNULL if stdin_bytes is None else subprocess.PIPE,
+                              stdout=subprocess.PIPE if law_first else subprocess.DEVNULL)
+        except OSError:
+            return Helper(None)
+        payload = stdin_bytes
+    if payload is not None:
         try:
             with process.stdin:
-                process.stdin.write(stdin_bytes)
+                process.stdin.write(payload)
         except OSError:  # it died already: the run compiles everything itself
             pass
     return Helper(process, law_first)
 
 
+# a helper `minidem run` started before importing the engine, waiting for its job
+_PRESTARTED: subprocess.Popen | None = None
+
+
+def kernel_cache_path() -> Path:
+    """Where specialised kernels are written (MINIDEM_CACHE_DIR/kernels; the folder may not
+    exist yet): ``minidem.engine.simulation.cache_directory``."""
+    root = os.environ.get("MINIDEM_CACHE_DIR") or Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "minidem"
+    return Path(root) / "kernels"
+
+
+def prestart() -> None:
+    """Start the helper of a first run now, before this process imports numba and the
+    engine: ``minidem run`` calls this first thing. The helper imports them meanwhile
+    (0.3-0.4 s in either process) and then waits for its job (:func:`_spawn`: the law and
+    the shared functions, or the scene's kernel), which the run decides once it has read
+    the scene; or for none (:func:`dismiss`). Started from the run's process once its
+    engine was imported, the helper spent its first 0.4 s importing while the run
+    compiled, and the run's kernel then waited ~0.35 s for the law (first run of
+    scenarios/oblique.toml, idle 2-core AMD EPYC).
+
+    Only on a fresh install (no kernel was ever written to the cache: every first run of
+    a new user), with a second CPU and the JIT on; anything else starts its helper as
+    before, when it knows it needs one, so a run on warm caches starts no process."""
+    global _PRESTARTED
+    if _PRESTARTED is not None or (os.cpu_count() or 1) < 2:
+        return
+    if os.environ.get("NUMBA_DISABLE_JIT", "0").strip() not in ("", "0"):
+        return
+    try:
+        if any(kernel_cache_path().glob("minidem_kernel_*.py")):
+            return
+        _PRESTARTED = _python("from minidem.engine import warmup; warmup.serve()", stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE)
+    except OSError:  # an unreadable cache folder or no process: the run starts its helper itself
+        _PRESTARTED = None
+
+
+def dismiss() -> None:
+    """End the prestarted helper without a job (nothing to compile, or no run follows)."""
+    global _PRESTARTED
+    process, _PRESTARTED = _PRESTARTED, None
+    if process is not None:
+        Helper(process).stop()
+        process.stdin.close()
+
+
+def serve() -> None:
+    """The prestarted helper's side: its job from the first line of standard input
+    (:func:`_spawn`); none when the input ends first."""
+    line = sys.stdin.buffer.readline()
+    if not line.strip():
+        return
+    job, arguments = json.loads(line)
+    if job in _JOBS:
+        globals()[job](*arguments)
+
+
 def _second_cpu() -> bool:
+    import numba
+
     return (os.cpu_count() or 1) >= 2 and not numba.config.DISABLE_JIT
 
 
@@ -211,13 +312,15 @@ def start(pairs: bool, meshes: bool, law=None) -> Helper:
     function the scene needs is not cached yet and there is a second CPU to run it on;
     otherwise a Helper that waits for nothing."""
     if not _second_cpu():
+        dismiss()
         return Helper(None)
     law_first = law is not None and hasattr(law.force, "compile") and not _cached(law.force)
     shared = not all(_cached(dispatcher) for dispatcher in _dispatchers(pairs, meshes).values())
     if not law_first and not shared:
+        dismiss()
         return Helper(None)
-    return _spawn(f"from minidem.engine import warmup; warmup.compile_for_run("
-                  f"{law.name if law_first else None!r}, {shared}, {bool(pairs)}, {bool(meshes)})", law_first=law_first)
+    return _spawn("compile_for_run", (law.name if law_first else None, shared, bool(pairs), bool(meshes)),
+                  law_first=law_first)
 
 
 def compile_for_run(law_name: str | None, shared: bool, pairs: bool, meshes: bool) -> None:
@@ -258,7 +361,7 @@ def kernel_beside_check(scene, notify=None):
             except Exception:  # a scene that cannot be sent: the run compiles its kernel itself
                 sent = None
             if sent is not None:
-                helper = _spawn("from minidem.engine import warmup; warmup.compile_kernel_of_scene()", sent)
+                helper = _spawn("compile_kernel_of_scene", stdin_bytes=sent)
     try:
         if helper.process is None:
             yield
@@ -281,6 +384,7 @@ def _stop_unclaimed() -> None:
     """A process leaving before its run (bad input found after the check) ends its helpers."""
     while _KERNEL_HELPERS:
         _KERNEL_HELPERS.popitem()[1][1].stop()
+    dismiss()
 
 
 def kernel_helper(scene) -> Helper | None:

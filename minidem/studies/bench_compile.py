@@ -113,7 +113,7 @@ def timed_run(scene: Path, cache: Path, out: Path) -> dict:
     env = dict(os.environ, MINIDEM_CACHE_DIR=str(cache / "minidem"), NUMBA_CACHE_DIR=str(cache / "numba"))
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     started = time.perf_counter()
-    done = subprocess.run([sys.executable, "-c", "import sys; from minidem.cli import main; sys.exit(main())",
+    done = subprocess.run([sys.executable, "-c", "from minidem.cli import console; console()",
                            "run", str(scene), "--out", str(out), "--quiet"],
                           env=env, capture_output=True, text=True)
     wall = time.perf_counter() - started
