@@ -89,14 +89,16 @@ SNAPSHOT_COST_RATIO = 200
 # (and earlier for a list rebuild, a frame, a checkpoint or a probe of the thread count):
 # the spacing of the energy samples (at least 200 a run) or CHECK_PARTICLE_STEPS
 # particle-steps, whichever is fewer, but at least CHECK_STEPS steps. Between chunks come
-# the blow-up guard's checks (~10 ns a particle) and Python's own work (~0.1 ms): a small
-# scene is checked at every sample as before, and from ~20,000 particles on a chunk is
-# CHECK_STEPS steps at least, so the checks cost ~1 % of the cheapest steps (~50 ns a
-# particle-step, settle's falling phase); at N = 1,000,000 that is a chunk of ~1-4 s on
-# one thread (how long a Ctrl-C waits). A grid of steps, not of wall time, so the
-# guard's record (the largest work of gravity, taken on the grid and at list rebuilds)
-# is the same in a resumed run as in an uninterrupted one.
-CHECK_STEPS = 20
+# the blow-up guard's checks (~10 ns a particle), the thread blocks of the next call
+# (~20 ns a particle on two threads), Python's own work (~0.1 ms) and an unfused drift at
+# each end of a call: a small scene is checked at every sample as before, and from
+# ~20,000 particles on a chunk is CHECK_STEPS steps at least, so that work costs ~2 % of
+# the cheapest steps (~40 ns a particle-step, settle's falling phase; at 20 steps it held
+# two threads at 1.73x one thread at N = 1,000,000); at N = 1,000,000 that is a chunk of
+# ~2 s on one thread, falling, ~10 s in a dense pile (how long a Ctrl-C waits). A grid of
+# steps, not of wall time, so the guard's record (the largest work of gravity, taken on
+# the grid and at list rebuilds) is the same in a resumed run as in an uninterrupted one.
+CHECK_STEPS = 50
 CHECK_PARTICLE_STEPS = 1_000_000
 
 
