@@ -93,8 +93,9 @@ SNAPSHOT_COST_RATIO = 200
 # (~20 ns a particle on two threads), Python's own work (~0.1 ms) and an unfused drift at
 # each end of a call: a small scene is checked at every sample as before, and from
 # ~20,000 particles on a chunk is CHECK_STEPS steps at least, so that work costs ~2 % of
-# the cheapest steps (~40 ns a particle-step, settle's falling phase; at 20 steps it held
-# two threads at 1.73x one thread at N = 1,000,000); at N = 1,000,000 that is a chunk of
+# the cheapest steps (~40 ns a particle-step, settle's falling phase; at 20 steps it was
+# ~6 % of a two-thread run at N = 1,000,000, whose kernel calls alone ran 1.95x one
+# thread's); at N = 1,000,000 that is a chunk of
 # ~2 s on one thread, falling, ~10 s in a dense pile (how long a Ctrl-C waits). A grid of
 # steps, not of wall time, so the guard's record (the largest work of gravity, taken on
 # the grid and at list rebuilds) is the same in a resumed run as in an uninterrupted one.
