@@ -106,21 +106,29 @@ def particle_kinetic_energy(p, mass, inertia, velocity, angular_velocity):
 
 # particles a block of the kinetic energy's sum: the sum is taken block by block and the
 # blocks' sums in order, so the same bits whether the blocks are summed on one thread or
-# several (minidem.engine.kernel.kinetic_energy, the run's samples) or here
+# several (minidem.engine.kernel.total_energy, the run's samples) or here
 ENERGY_BLOCK = 4096
+
+
+@numba.njit(cache=True, inline="always")
+def energy_blocks(n_particles):
+    """How many blocks of ENERGY_BLOCK particles (the last one may be short)."""
+    return -(-n_particles // ENERGY_BLOCK)
+
+
+@numba.njit(cache=True, inline="always")
+def block_particles(block, n_particles):
+    """The particles of block ``block``, as a range."""
+    return range(block * ENERGY_BLOCK, min((block + 1) * ENERGY_BLOCK, n_particles))
 
 
 @numba.njit(cache=True)
 def block_sum(block, values):
     """values[p] summed in order over the particles p of block ``block``."""
     total = 0.0
-    for p in range(block * ENERGY_BLOCK, min((block + 1) * ENERGY_BLOCK, values.shape[0])):
+    for p in block_particles(block, values.shape[0]):
         total += values[p]
     return total
-
-
-def energy_blocks(n_particles: int) -> int:
-    return -(-n_particles // ENERGY_BLOCK)
 
 
 @numba.njit(cache=True)
@@ -131,9 +139,9 @@ def kinetic_energy(mass, inertia, velocity, angular_velocity):
     (numpy's einsum and sums took 0.5 ms at N = 20,000; a BLAS dot would also start
     OpenBLAS threads that spin on the kernel's cores)."""
     total = 0.0
-    for block in range(-(-mass.shape[0] // ENERGY_BLOCK)):
+    for block in range(energy_blocks(mass.shape[0])):
         block_total = 0.0
-        for p in range(block * ENERGY_BLOCK, min((block + 1) * ENERGY_BLOCK, mass.shape[0])):
+        for p in block_particles(block, mass.shape[0]):
             block_total += particle_kinetic_energy(p, mass, inertia, velocity, angular_velocity)
         total += block_total
     return total

@@ -1113,7 +1113,7 @@ class _RunLoop:
         # sample_steps), and at every frame and the end
         self.sample_steps = max(1, int(math.ceil(end_time / 200.0 / sim.dt - 1e-9)))
         self.particle_energy = np.zeros(scene.n_particles)
-        self.energy_blocks = np.zeros(integrate.energy_blocks(scene.n_particles))
+        self.energy_blocks = np.zeros(integrate.energy_blocks.py_func(scene.n_particles))  # no compile for a count
         self.no_samples = np.zeros(0)
         self.checkpoint_steps = (max(1, int(round(policy.interval / sim.dt)))
                                  if policy is not None and policy.interval else None)
