@@ -516,6 +516,10 @@ class State:
         pair_index = np.zeros(0, dtype=pair_index_type(0, n))
         self.pairs = pair_arrays(np.zeros(n + 1, dtype=np.int64), pair_index, np.zeros((0, h)), np.zeros(0), pair_index,
                                  np.zeros(n + 1, dtype=np.int64))
+        # each particle's first partner in the list (the smallest i whose row lists it,
+        # itself if none; neighbours.reverse_index): the threads' blocks need it before
+        # every call, and it changes only with the list (Simulation.rebuild, restore)
+        self.first_partner = np.arange(n)
         self.position_at_build = self.position.copy()
         self.list_near_planes()
         self.builds = 0
@@ -603,9 +607,10 @@ class State:
             setattr(self, group, tuple(items))
         offsets, partners = self.pairs[:2]
         if partners.shape[0]:
-            reverse_offsets, slot = neighbours.reverse_index(offsets, partners, len(offsets) - 1)
+            reverse_offsets, slot, self.first_partner = neighbours.reverse_index(offsets, partners, len(offsets) - 1)
         else:
             reverse_offsets, slot = np.zeros_like(offsets), partners.copy()
+            self.first_partner = np.arange(len(offsets) - 1)
         self.pairs = self.pairs[:5] + (slot, reverse_offsets) + self.pairs[7:]
         self.list_near_planes()
         self.builds = int(arrays["builds"])
@@ -942,6 +947,8 @@ class Simulation:
             # allocated: at its peak a rebuild holds the old list and the new one with its
             # histories, not two whole sets of pair arrays.
             state.pairs = None
+            # likewise the old list's first partners (8 bytes a particle), recomputed with the new list
+            old_first_partner, state.first_partner = state.first_partner, None
             try:
                 offsets, found = neighbours.build_pairs(state.position, radius, self.skin + self.max_reach)
                 found = found.astype(pair_index_type(found.shape[0], len(radius)), copy=False)
@@ -951,8 +958,9 @@ class Simulation:
                 overlap = neighbours.carry_history(*old, offsets, found, history)
             except BaseException:
                 state.pairs = old + (None, None, None, None)  # as before the call (a failure restores from it)
+                state.first_partner = old_first_partner
                 raise
-            del old
+            del old, old_first_partner
             if state.builds == 0:
                 # t = 0: spheres may start touching; their overlap is the 'previous' one.
                 # A few rows at a time: whole-list temporaries (three (M, 3) arrays) were
@@ -964,7 +972,7 @@ class Simulation:
                     first = np.repeat(np.arange(start, stop), np.diff(offsets[start:stop + 1]))
                     overlap[entries] = radius[first] + radius[found[entries]] - np.linalg.norm(
                         state.position[first] - state.position[found[entries]], axis=1)
-            reverse_offsets, slot = neighbours.reverse_index(offsets, found, len(radius))
+            reverse_offsets, slot, state.first_partner = neighbours.reverse_index(offsets, found, len(radius))
             state.pairs = pair_arrays(offsets, found, history, overlap, slot, reverse_offsets)
         if state.meshes[0].shape[0]:
             triangles, triangle_material, old_offsets, old_found, old_history, old_overlap = state.meshes
@@ -1169,7 +1177,7 @@ class _RunLoop:
         state, sim = self.state, self.sim
         # a serial kernel runs its particle loops on one thread, whatever it is told
         bounds, first_partner = blocks.blocks(threads if sim.threaded and not one_block else 1, state.planes,
-                                              state.pairs, state.position.shape[0])
+                                              state.pairs, state.first_partner)
         return (state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
                 self.scene.gravity, state.position_at_build, self.half_skin_squared, sim.dt if dt is None else dt,
                 self.start_time, start_step, n_steps, completing,

@@ -377,10 +377,15 @@ def reverse_index(offsets, neighbours, n_particles):
     """The transposed half list: for each particle p the entries (i, p) naming it as the
     partner, in ascending i (a counting sort, O(N + M)).
 
-    Returns (reverse_offsets (N + 1,) int64, slot (M,) of the neighbours' type): p's entries occupy positions
+    Returns (reverse_offsets (N + 1,) int64, slot (M,) of the neighbours' type,
+    first_partner (N,) int64): p's entries occupy positions
     reverse_offsets[p]..reverse_offsets[p + 1] of the transposed order, and entry e is
     at position slot[e]. The engine stores each pair's reaction at its slot, so p reads
     its reactions contiguously and adds them in a fixed order whatever the thread count.
+    first_partner[p] is the row of p's first transposed entry, the smallest i whose row
+    lists p (p itself if none): the kernel's thread blocks need it
+    (``minidem.engine.blocks``), and it changes only with the list, so it is found here,
+    in the pass that visits the entries in ascending i anyway.
     """
     reverse_offsets = np.zeros(n_particles + 1, dtype=np.int64)
     for e in range(neighbours.shape[0]):
@@ -388,15 +393,18 @@ def reverse_index(offsets, neighbours, n_particles):
     for p in range(n_particles):
         reverse_offsets[p + 1] += reverse_offsets[p]
     next_slot = reverse_offsets[:-1].copy()
+    first_partner = np.arange(n_particles)
     # the partners' integer type (int32 in the engine's lists): a slot is below the
     # number of entries, which the engine keeps in that type's range
     slot = np.empty(neighbours.shape[0], dtype=neighbours.dtype)
     for i in range(n_particles):
         for e in range(offsets[i], offsets[i + 1]):
             j = neighbours[e]
+            if next_slot[j] == reverse_offsets[j]:  # j's first entry: i is the smallest row listing j
+                first_partner[j] = i
             slot[e] = next_slot[j]
             next_slot[j] += 1
-    return reverse_offsets, slot
+    return reverse_offsets, slot, first_partner
 
 
 def near_planes(positions, radii, wall_point, wall_normal, margin):
