@@ -9,8 +9,8 @@ thread, where the blocks are trivial and need no compiled code: ``blocks``).
 What depends on the neighbour list alone, each particle's first partner, is computed
 once per list (``minidem.geometry.neighbours.reverse_index``, at each list build and
 restore: ``State.first_partner``); only the bounds, which count the contacts touching
-now, are found before every call, in parallel (at N = 1,000,000 on two threads the
-whole was 18 ms of serial work before every chunk of 50 steps).
+now, are found before every call, their sums in parallel (at N = 1,000,000 on two
+threads the whole was 18 ms of serial work before every chunk of 50 steps).
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ def blocks(threads: int, planes, pairs, first_partner: np.ndarray) -> tuple[np.n
 PARTICLE_COST, LISTED_COST, CONTACT_COST = 4, 1, 12
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def thread_blocks(threads, planes, pairs, list_first_partner):
     """More than one thread: (bounds of ``threads`` blocks of consecutive particles with
     equal estimated work in the force pass, counting the contacts touching at the last
@@ -52,17 +52,13 @@ def thread_blocks(threads, planes, pairs, list_first_partner):
     indices) touch first and most, e.g. 18,401 against 10,723 touching pairs in the two
     halves of N = 20,000 at step 3,000 (jitter). Which thread computes a particle does
     not change a bit of the result."""
-    n = list_first_partner.shape[0]
-    bounds = balanced_bounds(threads, planes, pairs, n)
-    first_partner = np.empty(n, dtype=np.int64)
-    for block in numba.prange(threads):  # each thread copies the block it will mark
-        for p in range(bounds[block], bounds[block + 1]):
-            first_partner[p] = list_first_partner[p]
+    bounds = balanced_bounds(threads, planes, pairs, list_first_partner.shape[0])
+    first_partner = list_first_partner.copy()
     defer_finishing(bounds, first_partner)
     return bounds, first_partner
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def defer_finishing(bounds, first_partner):
     """Even out the second pass. Block b must leave to finish_kick_drift its particles
     with a partner in an earlier block (none in the first block, about a layer of a pile
@@ -71,27 +67,23 @@ def defer_finishing(bounds, first_partner):
     such particles leaves, so every thread finishes as many in the second pass and as
     many fewer in the first (the bounds balance the total work). Marked by
     first_partner = -1 (earlier than any block): which pass finishes a particle does not
-    change a bit of the result (its reactions are all stored by then). The blocks are
-    counted and marked in parallel, each on its own particles."""
+    change a bit of the result (its reactions are all stored by then)."""
     blocks = bounds.shape[0] - 1
     left = np.zeros(blocks, dtype=np.int64)
-    for block in numba.prange(blocks):
-        count = 0
+    for block in range(blocks):
         for p in range(bounds[block], bounds[block + 1]):
-            count += first_partner[p] < bounds[block]
-        left[block] = count
+            left[block] += first_partner[p] < bounds[block]
     most = left.max()
-    for block in numba.prange(blocks):
-        count = left[block]
+    for block in range(blocks):
         p = bounds[block + 1] - 1
-        while count < most and p >= bounds[block]:
+        while left[block] < most and p >= bounds[block]:
             if first_partner[p] >= bounds[block]:
                 first_partner[p] = -1
-                count += 1
+                left[block] += 1
             p -= 1
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
 def particle_work(i, offsets, pair_overlap, wall_overlap):
     """The estimated work of particle i in the force pass (the costs above)."""
     work = PARTICLE_COST + LISTED_COST * (offsets[i + 1] - offsets[i])
