@@ -84,14 +84,18 @@ def defer_finishing(bounds, first_partner):
 
 
 @numba.njit(cache=True, inline="always")
-def particle_work(i, offsets, pair_overlap, wall_overlap):
-    """The estimated work of particle i in the force pass (the costs above)."""
-    work = PARTICLE_COST + LISTED_COST * (offsets[i + 1] - offsets[i])
-    for e in range(offsets[i], offsets[i + 1]):
-        work += CONTACT_COST * (pair_overlap[e] > 0.0)
-    for w in range(wall_overlap.shape[1]):
-        work += CONTACT_COST * (wall_overlap[i, w] > 0.0)
-    return work
+def range_work(first, last, offsets, pair_overlap, wall_overlap):
+    """The estimated work of particles first..last-1 in the force pass (the costs
+    above): their list entries and their touching contacts are contiguous ranges of the
+    list's and the walls' arrays, counted flat, without a loop per particle's row."""
+    touching = 0
+    for e in range(offsets[first], offsets[last]):
+        touching += pair_overlap[e] > 0.0
+    for i in range(first, last):
+        for w in range(wall_overlap.shape[1]):
+            touching += wall_overlap[i, w] > 0.0
+    return (PARTICLE_COST * (last - first) + LISTED_COST * (offsets[last] - offsets[first])
+            + CONTACT_COST * touching)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -108,10 +112,8 @@ def balanced_bounds(threads, planes, pairs, n):
     pieces = energy_blocks(n)
     piece_work = np.zeros(pieces, dtype=np.int64)
     for piece in numba.prange(pieces):
-        work = 0
-        for i in block_particles(piece, n):
-            work += particle_work(i, offsets, pair_overlap, wall_overlap)
-        piece_work[piece] = work
+        particles = block_particles(piece, n)
+        piece_work[piece] = range_work(particles.start, particles.stop, offsets, pair_overlap, wall_overlap)
     total = 0
     for piece in range(pieces):
         total += piece_work[piece]
@@ -125,7 +127,7 @@ def balanced_bounds(threads, planes, pairs, n):
             piece += 1
         i = min(piece * ENERGY_BLOCK, n)
         while i < n and before < share:
-            before += particle_work(i, offsets, pair_overlap, wall_overlap)
+            before += range_work(i, i + 1, offsets, pair_overlap, wall_overlap)
             i += 1
         bounds[block] = i
     bounds[threads] = n
