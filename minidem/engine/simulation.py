@@ -89,8 +89,10 @@ SNAPSHOT_COST_RATIO = 200
 # (and earlier for a list rebuild, a frame, a checkpoint or a probe of the thread count):
 # the spacing of the energy samples (at least 200 a run) or CHECK_PARTICLE_STEPS
 # particle-steps, whichever is fewer, but at least CHECK_STEPS steps. Between chunks come
-# the blow-up guard's checks (~10 ns a particle), the thread blocks of the next call
-# (~20 ns a particle on two threads), Python's own work (~0.1 ms) and an unfused drift at
+# the blow-up guard's checks (~9 ns a particle of work, shared between a threaded run's
+# threads), the thread blocks of the next call (two threads: ~8 ns a particle of work,
+# mostly shared; 16-18 ns serial before the first partners were kept per list, see
+# minidem.engine.blocks), Python's own work (~0.1 ms) and an unfused drift at
 # each end of a call: a small scene is checked at every sample as before, and from
 # ~20,000 particles on a chunk is CHECK_STEPS steps at least, so that work costs ~2 % of
 # the cheapest steps (~40 ns a particle-step, settle's falling phase; at 20 steps it was
