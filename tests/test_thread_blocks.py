@@ -2,8 +2,9 @@
 partner computed once per neighbour list (``neighbours.reverse_index``, kept in
 ``State.first_partner``), the thread blocks' bounds summed in parallel by pieces
 (``blocks.balanced_bounds``) and the blow-up guard's survey by blocks
-(``blowup.survey``, ``blowup.survey_threads``). The references here are plain numpy
-written from the definitions, not minidem's own output."""
+(``blowup.survey``, ``blowup.survey_threads``); at list builds, the planes near each
+sphere (``neighbours.near_planes``). The references here are plain numpy written from
+the definitions, not minidem's own output."""
 
 import numba
 import numpy as np
@@ -162,3 +163,28 @@ def test_guard_survey_by_blocks_is_the_same_on_any_thread_count_and_agrees_with_
         arrays[3][later, 1] = np.inf
         arrays[2][first, 0] = np.nan
         assert blowup.survey(*arrays)[0] == blowup.survey_threads(*arrays)[0] == first
+
+
+def test_near_planes_are_those_within_radius_plus_margin():
+    # Definition: plane w is listed for sphere i when (x_i - p_w) . n_w < r_i + margin,
+    # ascending w per sphere (CSR). Axis-aligned planes (a box: the zero components of the
+    # normal are skipped) and tilted ones, spheres on both sides and a few exactly at the
+    # limit (not listed: strictly closer).
+    rng = np.random.default_rng(5)
+    n, margin = 5000, 0.5e-3
+    positions = rng.uniform(-0.01, 0.11, (n, 3))
+    radii = rng.uniform(0.5e-3, 1e-3, n)
+    tilted = np.array([[1.0, 2.0, -0.5], [0.0, -1.0, 3.0]])
+    normals = np.vstack([np.eye(3), -np.eye(3)[:2], tilted / np.linalg.norm(tilted, axis=1)[:, None]])
+    points = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.1, 0.1, 0.0], [0.1, 0.1, 0.0],
+                       [0.05, 0.05, 0.05], [0.02, 0.0, 0.01]])
+    positions[:10, 2] = radii[:10] + margin  # at the floor's limit: not listed
+    near = np.einsum("iwk,wk->iw", positions[:, None, :] - points[None, :, :], normals) < (radii + margin)[:, None]
+    offsets, planes = neighbours.near_planes(positions, radii, points, normals, margin)
+    assert offsets.dtype == np.int64 and planes.dtype == np.int32
+    assert np.array_equal(offsets, np.concatenate([[0], np.cumsum(near.sum(axis=1))]))
+    assert np.array_equal(planes, np.nonzero(near)[1])
+    assert 0 < near.any(axis=1).sum() < n and not near[:10, 2].any()
+    # no margin: every plane for every sphere
+    offsets, planes = neighbours.near_planes(positions, radii, points, normals, None)
+    assert np.array_equal(offsets, 7 * np.arange(n + 1)) and np.array_equal(planes, np.tile(np.arange(7), n))
