@@ -36,7 +36,9 @@ import numpy as np
 from minidem.files import atomic_write
 
 # 2: pair_reaction_in_use (whether each reaction row's pair touches)
-FORMAT = 2
+# 3: plane_history and plane_overlap per near-plane entry (State.list_near_planes), not
+#    per (sphere, plane)
+FORMAT = 3
 CHECKPOINT = "checkpoint.npz"
 FINAL_STATE = "final_state.npz"
 LAST_GOOD = "last_good.npz"
