@@ -472,7 +472,8 @@ def pair_arrays(offsets, partners, history, overlap, slot, reverse_offsets):
 class State:
     """The arrays the compiled kernel advances, grouped as it takes them.
 
-    ``pairs`` and ``meshes`` hold Verlet lists (CSR) with one history row per entry;
+    ``pairs`` and ``meshes`` hold Verlet lists (CSR) with one history row per entry, and
+    ``planes`` the list of planes near each sphere likewise (:meth:`list_near_planes`);
     :meth:`Simulation.rebuild` replaces them, carrying every entry's history over.
     """
 
