@@ -67,13 +67,17 @@ def test_cached_first_partners_follow_the_list_through_rebuilds_and_restores():
     assert np.array_equal(state.first_partner, first_partners_by_definition(offsets, partners, n))
 
 
-def work_by_definition(pair_offsets, pair_overlap, wall_overlap):
-    """Each particle's estimated work (blocks.PARTICLE_COST, LISTED_COST, CONTACT_COST)."""
+def work_by_definition(pair_offsets, pair_overlap, near_offsets, wall_overlap):
+    """Each particle's estimated work (blocks.PARTICLE_COST, LISTED_COST, CONTACT_COST):
+    its listed pairs, and its touching pairs and near planes (per near-plane entry)."""
     n = pair_offsets.shape[0] - 1
-    rows = np.repeat(np.arange(n), np.diff(pair_offsets))
-    touching_pairs = np.bincount(rows[pair_overlap > 0.0], minlength=n)
+
+    def touching(offsets, overlap):
+        rows = np.repeat(np.arange(n), np.diff(offsets))
+        return np.bincount(rows[overlap > 0.0], minlength=n)
+
     return (blocks.PARTICLE_COST + blocks.LISTED_COST * np.diff(pair_offsets)
-            + blocks.CONTACT_COST * (touching_pairs + (wall_overlap > 0.0).sum(axis=1)))
+            + blocks.CONTACT_COST * (touching(pair_offsets, pair_overlap) + touching(near_offsets, wall_overlap)))
 
 
 @pytest.mark.parametrize("threads", [2, 3, 5])
@@ -87,9 +91,11 @@ def test_balanced_bounds_are_where_the_prefix_sum_of_the_work_reaches_each_share
     pair_offsets = np.concatenate([[0], np.cumsum(rng.integers(0, 9, n))]).astype(np.int64)
     pair_overlap = rng.normal(-1.0, 1.0, pair_offsets[-1])
     pair_overlap[:pair_offsets[integrate.ENERGY_BLOCK // 2]] = 1.0
-    wall_overlap = rng.normal(-2.0, 1.0, (n, 5))
-    pairs, planes = (pair_offsets, None, None, pair_overlap), (None, None, None, None, wall_overlap)
-    work_before = np.concatenate([[0], np.cumsum(work_by_definition(pair_offsets, pair_overlap, wall_overlap))])
+    near_offsets = np.concatenate([[0], np.cumsum(rng.integers(0, 3, n))]).astype(np.int64)  # 0-2 planes near each
+    wall_overlap = rng.normal(-1.0, 1.0, near_offsets[-1])
+    pairs, planes = (pair_offsets, None, None, pair_overlap), (None, None, None, None, wall_overlap, near_offsets)
+    work_before = np.concatenate([[0], np.cumsum(work_by_definition(pair_offsets, pair_overlap, near_offsets,
+                                                                    wall_overlap))])
     shares = np.arange(threads + 1) * work_before[-1] // threads
     expected = np.searchsorted(work_before, shares, side="left")
     expected[-1] = n
@@ -115,7 +121,7 @@ def test_thread_blocks_mark_a_copy_of_the_lists_first_partners():
     partners = np.array([j for i in range(n - 2) for j in (i + 1, i + 2)], dtype=np.int32)
     list_first = first_partners_by_definition(pair_offsets, partners, n)
     kept = list_first.copy()
-    planes = (None, None, None, None, np.zeros((n, 1)))
+    planes = (None, None, None, None, np.zeros(0), np.zeros(n + 1, dtype=np.int64))  # no plane near any
     pairs = (pair_offsets, partners, None, np.zeros(partners.shape[0]))
     bounds, first = blocks.blocks(2, planes, pairs, list_first)
     assert np.array_equal(list_first, kept) and first is not list_first

@@ -84,16 +84,16 @@ def defer_finishing(bounds, first_partner):
 
 
 @numba.njit(cache=True, inline="always")
-def range_work(first, last, offsets, pair_overlap, wall_overlap):
+def range_work(first, last, offsets, pair_overlap, near_offsets, wall_overlap):
     """The estimated work of particles first..last-1 in the force pass (the costs
     above): their list entries and their touching contacts are contiguous ranges of the
-    list's and the walls' arrays, counted flat, without a loop per particle's row."""
+    list's and the near planes' arrays (State.list_near_planes), counted flat, without a
+    loop per particle's row."""
     touching = 0
     for e in range(offsets[first], offsets[last]):
         touching += pair_overlap[e] > 0.0
-    for i in range(first, last):
-        for w in range(wall_overlap.shape[1]):
-            touching += wall_overlap[i, w] > 0.0
+    for k in range(near_offsets[first], near_offsets[last]):
+        touching += wall_overlap[k] > 0.0
     return (PARTICLE_COST * (last - first) + LISTED_COST * (offsets[last] - offsets[first])
             + CONTACT_COST * touching)
 
@@ -108,12 +108,13 @@ def balanced_bounds(threads, planes, pairs, n):
     walking the pieces' sums, and particle by particle only within the piece where it
     falls: the same bounds as one serial prefix sum over every particle, in a fraction
     of its time (the sums are integers: their order changes nothing)."""
-    offsets, pair_overlap, wall_overlap = pairs[0], pairs[3], planes[4]
+    offsets, pair_overlap, wall_overlap, near_offsets = pairs[0], pairs[3], planes[4], planes[5]
     pieces = energy_blocks(n)
     piece_work = np.zeros(pieces, dtype=np.int64)
     for piece in numba.prange(pieces):
         particles = block_particles(piece, n)
-        piece_work[piece] = range_work(particles.start, particles.stop, offsets, pair_overlap, wall_overlap)
+        piece_work[piece] = range_work(particles.start, particles.stop, offsets, pair_overlap, near_offsets,
+                                       wall_overlap)
     total = 0
     for piece in range(pieces):
         total += piece_work[piece]
@@ -127,7 +128,7 @@ def balanced_bounds(threads, planes, pairs, n):
             piece += 1
         i = min(piece * ENERGY_BLOCK, n)
         while i < n and before < share:
-            before += range_work(i, i + 1, offsets, pair_overlap, wall_overlap)
+            before += range_work(i, i + 1, offsets, pair_overlap, near_offsets, wall_overlap)
             i += 1
         bounds[block] = i
     bounds[threads] = n
