@@ -83,4 +83,4 @@ def contact_count(state):
     touching = overlap > 0
     n = len(offsets) - 1
     return (np.bincount(first[touching], minlength=n) + np.bincount(partners[touching], minlength=n)
-            + np.count_nonzero(state.planes[4] > 0, axis=1))
+            + np.bincount(state.plane_contacts()[0][state.planes[4] > 0], minlength=n))

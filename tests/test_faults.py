@@ -183,6 +183,12 @@ def test_interrupted_impact_resumes_bit_for_bit_and_refuses_another_scenario(tmp
     checkpoint.write(path, arrays, dict(meta, kernel="minidem_kernel_hmd_0000000000000000"))
     assert cli.main(args) == cli.EXIT_BAD_INPUT
     assert "another build of the engine or of law 'hmd'" in capsys.readouterr().err
+    # a file of an older format (2: the plane contacts per sphere and plane, not per entry
+    # of the list of planes near each sphere) is refused, naming both formats
+    with open(path, "wb") as handle:
+        np.savez(handle, **arrays, meta=np.frombuffer(json.dumps(dict(meta, format=2)).encode(), dtype=np.uint8))
+    assert cli.main(args) == cli.EXIT_BAD_INPUT
+    assert f"has checkpoint format 2, this minidem writes format {checkpoint.FORMAT}" in capsys.readouterr().err
     checkpoint.write(path, arrays, meta)
     assert cli.main(args) == cli.EXIT_OK, capsys.readouterr().err
 

@@ -80,15 +80,15 @@ def defer_finishing(bounds, first_partner):
 @numba.njit(cache=True)
 def balanced_bounds(threads, planes, pairs, n):
     """Block bounds of thread_blocks for more than one thread."""
-    offsets, pair_overlap, wall_overlap = pairs[0], pairs[3], planes[4]
+    offsets, pair_overlap, wall_overlap, near_offsets = pairs[0], pairs[3], planes[4], planes[5]
     work_before = np.empty(n + 1, dtype=np.int64)  # estimated work of particles 0..i-1
     work_before[0] = 0
     for i in range(n):
         work = PARTICLE_COST + LISTED_COST * (offsets[i + 1] - offsets[i])
         for e in range(offsets[i], offsets[i + 1]):
             work += CONTACT_COST * (pair_overlap[e] > 0.0)
-        for w in range(wall_overlap.shape[1]):
-            work += CONTACT_COST * (wall_overlap[i, w] > 0.0)
+        for k in range(near_offsets[i], near_offsets[i + 1]):  # the planes near i (State.list_near_planes)
+            work += CONTACT_COST * (wall_overlap[k] > 0.0)
         work_before[i + 1] = work_before[i] + work
     bounds = np.empty(threads + 1, dtype=np.int64)
     i = 0

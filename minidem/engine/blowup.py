@@ -149,8 +149,9 @@ def survey(position, velocity, angular_velocity, force, torque, mass, inertia, i
 def contacts_of(state, particle: int) -> list[str]:
     """The partners particle ``particle`` touches (overlap > 0) in ``state``."""
     found = []
-    plane_overlap = state.planes[4]
-    found += [f"plane wall {w}" for w in np.flatnonzero(plane_overlap[particle] > 0)]
+    plane_overlap, near_offsets, near_planes = state.planes[4:7]  # per near-plane entry
+    row = slice(near_offsets[particle], near_offsets[particle + 1])
+    found += [f"plane wall {w}" for w in near_planes[row][plane_overlap[row] > 0]]
     cylinder_overlap = state.cylinders[6]
     if cylinder_overlap.shape[1]:
         found += [f"cylinder wall {c}" for c in np.flatnonzero(cylinder_overlap[particle] > 0)]

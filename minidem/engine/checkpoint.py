@@ -7,8 +7,10 @@ A checkpoint holds everything the compiled loop carries from one step to the nex
   last step (velocity Verlet opens every step with a half kick by them);
 * every contact's state: the history and last overlap of each plane, cylinder, mesh
   and pair contact, with the contact identities (the Verlet lists of pairs and mesh
-  candidates, their CSR offsets and reverse index, exactly as built), and the positions
-  at the last list build, so the next rebuild happens at the step it would have;
+  candidates, their CSR offsets, exactly as built), and the positions at the last list
+  build, so the next rebuild happens at the step it would have; the pairs' reverse index
+  and the list of planes near each sphere (one plane contact per entry) follow from
+  those and are made again on loading;
 * the run loop: step counter (time is ``step * dt``, never a running sum), the contact
   statistics and peak trackers, the kinetic-energy samples and trace rows so far, the
   frames written (index and the ``.pvd`` entries), the blow-up guard's record;
@@ -36,7 +38,9 @@ import numpy as np
 from minidem.files import atomic_write
 
 # 2: pair_reaction_in_use (whether each reaction row's pair touches)
-FORMAT = 2
+# 3: plane_history and plane_overlap per near-plane entry (State.list_near_planes), not
+#    per (sphere, plane)
+FORMAT = 3
 CHECKPOINT = "checkpoint.npz"
 FINAL_STATE = "final_state.npz"
 LAST_GOOD = "last_good.npz"

@@ -356,27 +356,28 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
 
         # Walls. Each kind has its own loop: binding the history rows of different
         # arrays to one variable would cost reference counting per contact (see above).
-        # planes: those near i (State.list_near_planes; all of them in a tracked kernel);
-        # a plane's normal never turns, so its history needs no rotation
+        # planes: those near i (State.list_near_planes; all of them in a tracked kernel),
+        # each entry k with its own history and last overlap (carried over at list
+        # builds); a plane's normal never turns, so its history needs no rotation
         for k in range(near_offsets[i], near_offsets[i + 1]):
             if k < 0:  # never (non_negative)
                 continue
             w = non_negative(near_planes[k])
             overlap = plane_overlap(px, py, pz, ri, wall_point, wall_normal, w)
-            previous = wall_overlap[i, w]
-            wall_overlap[i, w] = overlap
+            previous = wall_overlap[k]
+            wall_overlap[k] = overlap
             if TRACK:
                 note_transitions(stats, time, dt, overlap, previous)
             lives_above = engaged_above(constants, pair_row[mat, wall_material[w]])
             if overlap <= lives_above:
                 if previous > lives_above:
-                    wall_history[i, w, :] = 0.0  # contact ends: its history is dropped
+                    wall_history[k, :] = 0.0  # contact ends: its history is dropped
                 continue
             if overlap >= ri:
                 fault(status, TUNNELLED, i, w, PLANE)
                 break
             acc, _, _, _, fn, ft, increment, ok = evaluate_contact(
-                acc, constants[pair_row[mat, wall_material[w]]], wall_history[i, w], overlap, previous,
+                acc, constants[pair_row[mat, wall_material[w]]], wall_history[k], overlap, previous,
                 (wall_normal[w, 0], wall_normal[w, 1], wall_normal[w, 2]), False, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi,
                 dt, stats)
             if not ok:
@@ -389,9 +390,11 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 probe[PROBE_DISPLACEMENT] += increment[0]
                 probe[PROBE_DISPLACEMENT + 1] += increment[1]
                 probe[PROBE_DISPLACEMENT + 2] += increment[2]
-        if TRACK and i == 0 and 0 <= probe_wall and wall_overlap[0, probe_wall] <= engaged_above(
+        # a tracked kernel lists every plane for every sphere, in order: sphere 0's entry
+        # for plane w is w
+        if TRACK and i == 0 and 0 <= probe_wall and wall_overlap[probe_wall] <= engaged_above(
                 constants, pair_row[mat, wall_material[probe_wall]]):
-            probe[PROBE_OVERLAP], probe[PROBE_FN] = wall_overlap[0, probe_wall], 0.0
+            probe[PROBE_OVERLAP], probe[PROBE_FN] = wall_overlap[probe_wall], 0.0
             probe[PROBE_FT], probe[PROBE_FT + 1], probe[PROBE_FT + 2] = 0.0, 0.0, 0.0
 
         if CYLINDERS:

@@ -353,7 +353,8 @@ class RunResult:
 # argument tuple by position (None: fixed by the scene, not saved)
 _STATE_ARRAYS = ("position", "velocity", "angular_velocity", "force", "torque", "position_at_build")
 _STATE_TUPLES = {
-    # the planes near each sphere follow from the position at the last build (State.restore)
+    # per near-plane entry (State.list_near_planes); the list itself follows from the
+    # position at the last build (State.restore makes it again)
     "planes": (None, None, None, "plane_history", "plane_overlap", None, None),
     "cylinders": (None, None, None, None, None, "cylinder_history", "cylinder_overlap"),
     "meshes": (None, None, "mesh_offsets", "mesh_candidates", "mesh_history", "mesh_overlap"),
@@ -471,7 +472,8 @@ def pair_arrays(offsets, partners, history, overlap, slot, reverse_offsets):
 class State:
     """The arrays the compiled kernel advances, grouped as it takes them.
 
-    ``pairs`` and ``meshes`` hold Verlet lists (CSR) with one history row per entry;
+    ``pairs`` and ``meshes`` hold Verlet lists (CSR) with one history row per entry, and
+    ``planes`` the list of planes near each sphere likewise (:meth:`list_near_planes`);
     :meth:`Simulation.rebuild` replaces them, carrying every entry's history over.
     """
 
@@ -488,22 +490,25 @@ class State:
         self.particles = (self.position, self.velocity, self.angular_velocity, self.force, self.torque,
                           self.mass, 1.0 / self.mass, 1.0 / scene.inertia, scene.radius, scene.particle_material)
         self.law = (sim.pair_row, sim.constants)
-        plane_overlap = scene.radius[:, None] - np.einsum(
-            "iwk,wk->iw", self.position[:, None, :] - scene.wall_point[None, :, :], scene.wall_normal)
-        if sim.start_time > 0.0:
-            # touching after an analytic flight: rounding may put the sphere a hair inside
-            # the wall, but the previous overlap must read 'not yet touching' for the
-            # first touch to be recorded
-            plane_overlap = np.minimum(plane_overlap, 0.0)
-        self.planes = (scene.wall_point, scene.wall_normal, scene.wall_material,
-                       np.zeros((n, scene.wall_point.shape[0], h)), plane_overlap)
-        # The kernel checks only the planes near each sphere (neighbours.near_planes), listed
-        # at each list build. Every plane for a scene without list builds, and for the
+        # Plane contacts are kept per near-plane entry (neighbours.near_planes, CSR): the
+        # planes each sphere may touch before the next list build, listed at each build
+        # (list_near_planes), with each entry's history and last overlap, carried over to
+        # the new list like a pair's. The kernel checks only those planes. Every plane is
+        # listed for every sphere (margin None) in a scene without list builds, and for the
         # tracked (serial) kernel: its contact statistics interpolate each plane's touch and
         # separation times from the overlap of the step before, which a plane skipped since
         # the last build would hold stale.
         self.plane_margin = sim.skin + sim.max_reach if sim.parallel and (sim.pairs or walls.triangles.shape[0]) \
             else None
+        self.history_size = h
+        self.planes = (scene.wall_point, scene.wall_normal, scene.wall_material)
+        self.position_at_build = self.position.copy()
+        self.list_near_planes()
+        if sim.start_time > 0.0:
+            # touching after an analytic flight: rounding may put the sphere a hair inside
+            # the wall, but the previous overlap must read 'not yet touching' for the
+            # first touch to be recorded
+            np.minimum(self.planes[4], 0.0, out=self.planes[4])
         n_cylinders = walls.cylinder_base.shape[0]
         self.cylinders = (walls.cylinder_base, walls.cylinder_axis, walls.cylinder_radius, walls.cylinder_length,
                           walls.cylinder_material, np.zeros((n, n_cylinders, h)), np.full((n, n_cylinders), -1.0))
@@ -516,16 +521,47 @@ class State:
         pair_index = np.zeros(0, dtype=pair_index_type(0, n))
         self.pairs = pair_arrays(np.zeros(n + 1, dtype=np.int64), pair_index, np.zeros((0, h)), np.zeros(0), pair_index,
                                  np.zeros(n + 1, dtype=np.int64))
-        self.position_at_build = self.position.copy()
-        self.list_near_planes()
         self.builds = 0
 
     def list_near_planes(self) -> None:
-        """The planes each sphere may touch until the next list build (at position_at_build)."""
-        wall_point, wall_normal = self.planes[:2]
+        """The planes each sphere may touch until the next list build (at position_at_build),
+        as the kernel's plane tuple (point, normal, material, history (entries, h), last
+        overlap (entries,), near offsets, near planes). An entry of the old list for the
+        same (sphere, plane) hands over its history and last overlap
+        (``neighbours.carry_history``); a new one starts with no history and the current
+        overlap (at a rebuild it is below -(skin / 2 + reach): not touching, for any law).
+        Every plane for every sphere (no margin): the list never changes, nothing to do
+        after the first."""
+        wall_point, wall_normal, wall_material = self.planes[:3]
+        if self.plane_margin is None and len(self.planes) == 7:
+            return
+        offsets, planes = self.near_plane_list()
+        # zeros from the operating system: rows no contact is carried into stay unwritten
+        # (not resident) until a sphere touches that plane
+        history = np.zeros((planes.shape[0], self.history_size))
+        overlap = self.plane_overlaps(offsets, planes)
+        if len(self.planes) == 7:
+            neighbours.carry_history(*self.planes[5:], *self.planes[3:5], offsets, planes, history, overlap)
+        self.planes = (wall_point, wall_normal, wall_material, history, overlap, offsets, planes)
+
+    def near_plane_list(self) -> tuple[np.ndarray, np.ndarray]:
+        """(offsets, planes): the planes near each sphere at position_at_build, CSR."""
         radius = self.particles[8]  # the particle tuple's radius (kernel order)
-        self.planes = self.planes[:5] + neighbours.near_planes(self.position_at_build, radius, wall_point,
-                                                                wall_normal, self.plane_margin)
+        return neighbours.near_planes(self.position_at_build, radius, self.planes[0], self.planes[1],
+                                      self.plane_margin)
+
+    def plane_overlaps(self, offsets, planes) -> np.ndarray:
+        """The overlap R - (x - p) . n of each near-plane entry's sphere with its plane, now."""
+        wall_point, wall_normal = self.planes[:2]
+        sphere = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+        return self.particles[8][sphere] - np.einsum("ek,ek->e", self.position[sphere] - wall_point[planes],
+                                                     wall_normal[planes])
+
+    def plane_contacts(self):
+        """(sphere, plane) of every near-plane entry, aligned with the plane histories and
+        overlaps (planes[3], planes[4])."""
+        offsets, planes = self.planes[5:7]
+        return np.repeat(np.arange(len(offsets) - 1), np.diff(offsets)), planes
 
     def contact_pairs(self):
         """(pairs (M, 2) particle indices, normal force (M,) N) of touching particle pairs."""
@@ -607,7 +643,14 @@ class State:
         else:
             reverse_offsets, slot = np.zeros_like(offsets), partners.copy()
         self.pairs = self.pairs[:5] + (slot, reverse_offsets) + self.pairs[7:]
-        self.list_near_planes()
+        # the plane entries' history and overlap restored above belong to the list of
+        # the planes near each sphere at the restored position_at_build: that list, again
+        offsets, planes = self.near_plane_list()
+        if planes.shape[0] != self.planes[4].shape[0] or planes.shape[0] != self.planes[3].shape[0]:
+            raise MinidemError(f"the saved plane contacts ({self.planes[4].shape[0]} entries) do not match the "
+                               f"planes near each sphere at the saved last list build ({planes.shape[0]}): the "
+                               "state was not written by this version of minidem for this scene")
+        self.planes = self.planes[:5] + (offsets, planes)
         self.builds = int(arrays["builds"])
 
     def count_contacts(self) -> int:
@@ -948,7 +991,9 @@ class Simulation:
                 # zeros from the operating system: rows no contact is carried into stay
                 # unwritten (not resident) until a contact starts there
                 history = np.zeros((found.shape[0], old[2].shape[1]))
-                overlap = neighbours.carry_history(*old, offsets, found, history)
+                # a pair new to the list starts with overlap -1 (apart: the skin guarantees it)
+                overlap = np.full(found.shape[0], -1.0)
+                neighbours.carry_history(*old, offsets, found, history, overlap)
             except BaseException:
                 state.pairs = old + (None, None, None, None)  # as before the call (a failure restores from it)
                 raise
@@ -970,8 +1015,9 @@ class Simulation:
             triangles, triangle_material, old_offsets, old_found, old_history, old_overlap = state.meshes
             offsets, found = neighbours.mesh_candidates(state.position, radius, self.skin, triangles)
             history = np.zeros((found.shape[0], old_history.shape[1]))
-            overlap = neighbours.carry_history(old_offsets, old_found, old_history, old_overlap, offsets, found,
-                                               history)
+            overlap = np.full(found.shape[0], -1.0)
+            neighbours.carry_history(old_offsets, old_found, old_history, old_overlap, offsets, found, history,
+                                     overlap)
             state.meshes = (triangles, triangle_material, offsets, found, history, overlap)
         # a new array, not written in place: the last good state may hold the old one (_SHARED)
         state.position_at_build = state.position.copy()

@@ -108,13 +108,13 @@ def compile_shared(pairs: bool, meshes: bool) -> None:
         offsets, found = neighbours.build_pairs(position, scalar, 0.5)
         found = found.astype(pair_index_type(found.shape[0], n), copy=False)
         neighbours.carry_history(np.zeros(n + 1, dtype=np.int64), index.astype(found.dtype), history, overlap,
-                                 offsets, found, np.zeros((found.shape[0], h)))
+                                 offsets, found, np.zeros((found.shape[0], h)), np.full(found.shape[0], -1.0))
         neighbours.reverse_index(offsets, found, n)
     if meshes:
         triangles = np.array([[[0.0, 0.0, -1.0], [1.0, 0.0, -1.0], [0.0, 1.0, -1.0]]])
         offsets, found = neighbours.mesh_candidates(position, scalar, 0.5, triangles)
         neighbours.carry_history(np.zeros(n + 1, dtype=np.int64), index, history, overlap, offsets, found,
-                                 np.zeros((found.shape[0], h)))
+                                 np.zeros((found.shape[0], h)), np.full(found.shape[0], -1.0))
     compile_guard()
 
 

@@ -335,22 +335,23 @@ def benchmark_scaling(n_values=(2_000, 20_000, 200_000), thread_counts=(1, 2),
 # per-contact state across rebuilds
 # ---------------------------------------------------------------------------------
 @numba.njit(cache=True, parallel=True)
-def carry_history(old_offsets, old_keys, old_history, old_overlap, new_offsets, new_keys, history):
+def carry_history(old_offsets, old_keys, old_history, old_overlap, new_offsets, new_keys, history, overlap):
     """Per-entry contact state of a rebuilt CSR list, taken over from the old one.
 
-    Both lists hold, per row, ascending keys (partner particles j > i, or triangle
-    ids); a merge of the two sorted rows copies the history and last overlap of every
-    (row, key) present in both. ``history`` (one row per new entry) must hold zeros: the
-    carried rows are written into it, the others left alone, so an array from the
-    operating system's zeroed pages (numpy's np.zeros) stays unwritten, and not
+    Both lists hold, per row, ascending keys (partner particles j > i, triangle ids or
+    plane indices); a merge of the two sorted rows copies the history and last overlap
+    of every (row, key) present in both. ``history`` (one row per new entry) must hold
+    zeros: the carried rows are written into it, the others left alone, so an array from
+    the operating system's zeroed pages (numpy's np.zeros) stays unwritten, and not
     resident, where no contact was carried (24 bytes a list entry of a loose or falling
-    phase). Returns the last overlaps. New entries start with zero history and overlap
-    -1 (not touching): the Verlet skin guarantees that a pair absent from the old list
-    was not in contact, so no live contact loses its history. Rows are independent, so
-    the result does not depend on the thread count.
+    phase). ``overlap`` (one per new entry) holds, on entry, the last overlap a new entry
+    starts with (the caller's: -1 for pairs and mesh candidates, the current overlap for
+    planes); the carried entries' are written over it. The list's margin (the Verlet skin,
+    plus the law's reach) guarantees that a contact absent from the old list was not
+    engaged, so no live contact loses its history. Rows are independent, so the result
+    does not depend on the thread count.
     """
     n_rows = new_offsets.shape[0] - 1
-    overlap = np.full(new_keys.shape[0], -1.0)
     width = old_history.shape[1]
     # the bits: a row is written when any is set (-0.0 included), else left alone (a copy
     # of a zero row would still make its page resident)
@@ -369,7 +370,6 @@ def carry_history(old_offsets, old_keys, old_history, old_overlap, new_offsets, 
                     for k in range(width):
                         history[b, k] = old_history[a, k]
                 overlap[b] = old_overlap[a]
-    return overlap
 
 
 @numba.njit(cache=True)
