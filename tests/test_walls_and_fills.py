@@ -472,34 +472,44 @@ def test_column_collapse_runs_out_as_experiments_say():
     # kinetic energy below 1e-3 of the potential energy the collapse released; measured
     # ~1e-4, the foot still creeping), and no bead outside the channel. With rolling
     # resistance (the hm law with an EPSD part, mu_r = 0.1: real beads are not perfect
-    # spheres) the runout must come closer to the experiments' than without.
+    # spheres) the runout must come closer to the experiments' than without: on average
+    # over five jittered fills (the fill's seed). One collapse is chaotic: round-off alone
+    # moves its runout by a bead's size or more (the default seed's free runout was 4.05
+    # with one order of the reaction sums and 2.40 with another, rolling 1.83 and 1.80;
+    # over seeds 1-8 free 3.4-4.1, rolling 1.65-2.05), so one fill compared with itself
+    # tested the round-off, not the rolling resistance.
     from conftest import contact_count
 
-    runouts = {}
-    for rolling in ([], ["contact.rolling=epsd", "contact.rolling_friction=0.1"]):
-        scene = scenario.load_scene("scenarios/column_collapse.toml", ["run.threads=1", "output.vtk=false"] + rolling)
-        sim = simulation.Simulation(scene)
-        result = sim.run()
-        radius, position = scene.radius, result.position
-        length0 = 0.011
-        height0 = float((scene.position[:, 2] + radius).max())
-        aspect = height0 / length0
-        assert aspect == pytest.approx(2.0, rel=0.05)
-        front = deposit_front(position[:, 0] + radius, gap=4 * radius[0])
-        runout = runouts[bool(rolling)] = (front - length0) / length0
-        assert 0.5 * 1.2 * aspect < runout < 2.0 * 1.2 * aspect, runout
-        in_deposit = position[:, 0] + radius <= front
-        assert in_deposit.sum() > 0.8 * scene.n_particles
-        assert (position[:, 2] + radius).max() < height0
-        energy = 0.5 * scene.mass * (result.velocity ** 2).sum(axis=1) \
-            + 0.5 * scene.inertia * (result.angular_velocity ** 2).sum(axis=1)
-        held = contact_count(sim.state) >= 3
-        assert held.sum() > 0.5 * scene.n_particles
-        released = float(np.sum(scene.mass * 9.81 * (scene.position[:, 2] - position[:, 2])))
-        assert energy[held].sum() < 1e-3 * released
-        assert np.all(position[:, 2] > 0.95 * radius) and np.all(position[:, 0] > 0.95 * radius)
-        assert np.all((position[:, 1] > 0.95 * radius) & (position[:, 1] < 0.0066 - 0.95 * radius))
-    assert abs(runouts[True] - 1.2 * aspect) < abs(runouts[False] - 1.2 * aspect), runouts
+    runouts = {False: [], True: []}
+    for seed in (None, 1, 2, 3, 4):
+        for rolling in ([], ["contact.rolling=epsd", "contact.rolling_friction=0.1"]):
+            seeded = [] if seed is None else [f"fill.0.seed={seed}"]
+            scene = scenario.load_scene("scenarios/column_collapse.toml",
+                                        ["run.threads=1", "output.vtk=false"] + seeded + rolling)
+            sim = simulation.Simulation(scene)
+            result = sim.run()
+            radius, position = scene.radius, result.position
+            length0 = 0.011
+            height0 = float((scene.position[:, 2] + radius).max())
+            aspect = height0 / length0
+            assert aspect == pytest.approx(2.0, rel=0.05)
+            front = deposit_front(position[:, 0] + radius, gap=4 * radius[0])
+            runout = (front - length0) / length0
+            runouts[bool(rolling)].append(runout)
+            assert 0.5 * 1.2 * aspect < runout < 2.0 * 1.2 * aspect, (seed, runout)
+            in_deposit = position[:, 0] + radius <= front
+            assert in_deposit.sum() > 0.8 * scene.n_particles
+            assert (position[:, 2] + radius).max() < height0
+            energy = 0.5 * scene.mass * (result.velocity ** 2).sum(axis=1) \
+                + 0.5 * scene.inertia * (result.angular_velocity ** 2).sum(axis=1)
+            held = contact_count(sim.state) >= 3
+            assert held.sum() > 0.5 * scene.n_particles
+            released = float(np.sum(scene.mass * 9.81 * (scene.position[:, 2] - position[:, 2])))
+            assert energy[held].sum() < 1e-3 * released
+            assert np.all(position[:, 2] > 0.95 * radius) and np.all(position[:, 0] > 0.95 * radius)
+            assert np.all((position[:, 1] > 0.95 * radius) & (position[:, 1] < 0.0066 - 0.95 * radius))
+    mean = {rolling: float(np.mean(values)) for rolling, values in runouts.items()}
+    assert abs(mean[True] - 1.2 * aspect) < abs(mean[False] - 1.2 * aspect), runouts
 
 
 def test_heap_angle_of_repose_grows_with_rolling_friction():

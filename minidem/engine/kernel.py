@@ -35,10 +35,9 @@ of consecutive particles per thread:
                         the Verlet half list: it computes them through the one contact
                         evaluation (``evaluate_contact``), writes its own force (or
                         hands it to finish_range in registers, see below), and
-                        stores each pair's force and j's torque in j's row of the
-                        transposed list, marked touching (reaction_in_use)
+                        gives j its share of each pair (the opposite force, j's torque)
     finish_kick_drift   particle p adds the reactions of its touching pairs (i < p, p)
-                        in ascending i (its transposed row), v += F dt/2m (and, at a
+                        in ascending i, v += F dt/2m (and, at a
                         sample step, its kinetic energy); then, unless the
                         step ends a chunk, the next step's v += F dt/2m, x += v dt and
                         the count of particles that moved more than half the skin since
@@ -52,6 +51,18 @@ and the step is one pass; on two, finish_kick_drift is left with the particles t
 before theirs (about one layer of a pile), and each block leaves as many in all, taking
 its last particles to make up the number, so no thread waits alone on that pass
 (``minidem.engine.blocks.defer_finishing``).
+
+Where a pair's reaction goes follows from that. A j finished in the force pass gets it
+summed straight into its own force and torque rows, which hold only its reactions
+during the pass (zeroed as each particle's drift is done, ``finish_range`` and
+``kick_drift``) and are read back when j is finished: nothing else on one thread. A j
+left to finish_kick_drift (a partner in another block, whose thread may reach the pair
+at any time; its force rows hold its own contacts' force meanwhile) gets it stored at
+the pair's slot in its row of the transposed list, marked touching (reaction_in_use),
+and adds those rows in ascending i, from zero, as the rows were summed: the same
+operations either way. The call's last step also stores every pair's
+reaction at its slot, for the contact forces of the state the run sees
+(``State.contact_pairs``).
 
 Every sum is taken in an order fixed by the neighbour list, never by the thread
 schedule, so a run is bit-for-bit the same on any number of threads, and no two
@@ -329,6 +340,9 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
         for i in range(first, last):
             longest_row = max(longest_row, offsets[i + 1] - offsets[i])
     touching_entries = np.empty(longest_row, dtype=np.int64)
+    # every pair's reaction also at its slot at a step whose state the run sees (the
+    # call's last, unfused): the contact forces of the VTK frames (State.contact_pairs)
+    store_reactions = not drift_on
     active, moved_too_far = 0, 0
     for i in range(first, last):
         if i < 0:  # never: proves i >= 0 to the compiler (non_negative)
@@ -507,12 +521,13 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                         if TRACK:
                             note_transitions(stats, time, dt, overlap, previous)
                         if previous > lives_above:
-                            # contact ends: its history is dropped and its reaction on j
-                            # is zero from now on, and finish_range no longer reads it
+                            # contact ends: its history is dropped, and a stored reaction on
+                            # j is zero from now on and no longer read by finish_range
                             pair_history[e, :] = 0.0
                             r = non_negative(reaction_slot[e])
-                            reaction[r, :] = 0.0
-                            reaction_in_use[r] = 0
+                            if reaction_in_use[r]:
+                                reaction[r, :] = 0.0
+                                reaction_in_use[r] = 0
             for k in range(n_touching):
                 e = non_negative(touching_entries[k])
                 j = non_negative(neighbours[e])
@@ -547,20 +562,35 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 if not ok:
                     fault(status, NON_FINITE_FORCE, i, j, PARTICLE)
                     break
-                # j's share, added by finish_range: the force on i (j gets its opposite) and the
-                # torque on j, R_j' (n x ft) minus the couple on i, at the slot of the entry
-                # in j's reverse row
-                r = non_negative(reaction_slot[e])
-                reaction_in_use[r] = 1
-                reaction[r, 0], reaction[r, 1], reaction[r, 2] = on_i
+                # j's share: the force on i (j gets its opposite) and the torque on j,
+                # R_j' (n x ft) minus the couple on i
+                tjx, tjy, tjz = 0.0, 0.0, 0.0
                 if COUPLES:
-                    reaction[r, 3] = lever_j * direction[0] - couple[0]
-                    reaction[r, 4] = lever_j * direction[1] - couple[1]
-                    reaction[r, 5] = lever_j * direction[2] - couple[2]
+                    tjx, tjy, tjz = (lever_j * direction[0] - couple[0], lever_j * direction[1] - couple[1],
+                                     lever_j * direction[2] - couple[2])
                 elif SPIN:
-                    reaction[r, 3] = lever_j * direction[0]
-                    reaction[r, 4] = lever_j * direction[1]
-                    reaction[r, 5] = lever_j * direction[2]
+                    tjx, tjy, tjz = lever_j * direction[0], lever_j * direction[1], lever_j * direction[2]
+                direct = j < last and first_partner[j] >= first
+                if direct:
+                    # j is in this block and finished in this pass, after every row that lists
+                    # it (all in this block, in ascending i): its reactions are summed in its
+                    # own force and torque rows, zero at the start of the pass (finish_range)
+                    force[j, 0] -= on_i[0]
+                    force[j, 1] -= on_i[1]
+                    force[j, 2] -= on_i[2]
+                    if SPIN:
+                        torque[j, 0] += tjx
+                        torque[j, 1] += tjy
+                        torque[j, 2] += tjz
+                if store_reactions or not direct:
+                    # at the slot of the entry in j's reverse row: read by finish_kick_drift
+                    # for a j it finishes, and at a step whose state the run sees
+                    # (State.contact_pairs)
+                    r = non_negative(reaction_slot[e])
+                    reaction_in_use[r] = 1
+                    reaction[r, 0], reaction[r, 1], reaction[r, 2] = on_i
+                    if SPIN:
+                        reaction[r, 3], reaction[r, 4], reaction[r, 5] = tjx, tjy, tjz
 
         fx, fy, fz, tx, ty, tz, count = acc
         active += count
@@ -588,12 +618,12 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
     pass of its own (see ``advance``).
 
     ``own_given``: the force pass finishing its particle i (first = i, last = i + 1) hands
-    over ``own`` = (force, torque) of i's own contacts and gravity in registers; else
-    they are read from the force and torque arrays. The total is stored only when the
-    drift is not fused (the call's last step, and every traced or stop-at-separation
-    step: the next call's opening kick and the run between chunks read it); with the
-    drift fused nothing reads it before the next force pass overwrites it (48 bytes a
-    particle-step of memory traffic saved)."""
+    over ``own`` = (force, torque) of i's own contacts and gravity in registers, and its
+    reactions are in its force and torque rows; else its own force is read from those
+    rows and its reactions from its transposed row (see the module docstring). The total
+    is stored only when the drift is not fused (the call's last step, and every traced or
+    stop-at-separation step: the next call's opening kick and the run between chunks read
+    it); with the drift fused the rows are zeroed for the next force pass instead."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     sampling, inertia, particle_energy = energy_step
     offsets, neighbours, history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use = pairs
@@ -609,29 +639,45 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
             fx, fy, fz = force[p, 0], force[p, 1], force[p, 2]
             tx, ty, tz = torque[p, 0], torque[p, 1], torque[p, 2]
         if PAIRS:
-            # the reactions of the pairs (i < p, p) in ascending i, stored contiguously
-            # (the reverse rows), so the same sum whatever the thread count. Only the
-            # rows of touching pairs are read (reaction_in_use, a byte a row; a pair apart
-            # holds zeros, and x - 0 is exactly x, so the same bits as adding every row).
-            # Reading every row cost the falling phase of the settle scene (N = 200,000,
-            # one thread) 15 % of its step time, 48 bytes a listed pair a step from
-            # memory. A branch: reading a zero row instead, chosen without one, was 10 %
-            # slower there (the loads wait for the flag), and in a pile, where about half
-            # the listed pairs touch, the branch measured no slower than reading every row.
-            for k in range(reverse_offsets[p], reverse_offsets[p + 1]):
-                if k < 0:  # never (non_negative)
-                    continue
-                if reaction_in_use[k]:
-                    fx -= reaction[k, 0]
-                    fy -= reaction[k, 1]
-                    fz -= reaction[k, 2]
-                    if SPIN:
-                        tx += reaction[k, 3]
-                        ty += reaction[k, 4]
-                        tz += reaction[k, 5]
+            # the reactions of the pairs (i < p, p), summed from zero in ascending i, so the
+            # same sum whatever the thread count
+            if own_given:
+                # finished in the force pass: summed there in p's force and torque rows
+                rfx, rfy, rfz = force[p, 0], force[p, 1], force[p, 2]
+                rtx, rty, rtz = torque[p, 0], torque[p, 1], torque[p, 2]
+            else:
+                # a partner in an earlier block: stored contiguously (the reverse rows).
+                # Only the rows of touching pairs are read (reaction_in_use, a byte a row);
+                # a branch: reading a zero row instead, chosen without one, was 10 % slower
+                # in the falling phase of the settle scene (the loads wait for the flag)
+                rfx, rfy, rfz, rtx, rty, rtz = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+                for k in range(reverse_offsets[p], reverse_offsets[p + 1]):
+                    if k < 0:  # never (non_negative)
+                        continue
+                    if reaction_in_use[k]:
+                        rfx -= reaction[k, 0]
+                        rfy -= reaction[k, 1]
+                        rfz -= reaction[k, 2]
+                        if SPIN:
+                            rtx += reaction[k, 3]
+                            rty += reaction[k, 4]
+                            rtz += reaction[k, 5]
+            fx, fy, fz = fx + rfx, fy + rfy, fz + rfz
+            if SPIN:
+                tx, ty, tz = tx + rtx, ty + rty, tz + rtz
         if not drift_on:
             force[p, 0], force[p, 1], force[p, 2] = fx, fy, fz
             torque[p, 0], torque[p, 1], torque[p, 2] = tx, ty, tz
+        elif PAIRS and (not own_given or rfx != 0.0 or rfy != 0.0 or rfz != 0.0 or rtx != 0.0 or rty != 0.0
+                        or rtz != 0.0):
+            # zero for the next force pass, which may sum p's reactions there (a call that
+            # goes on after a list rebuild takes new blocks without an opening kick_drift);
+            # nothing reads the total before that pass (the drift is fused). Rows of a p
+            # finished in the force pass that are zero already (no touching pair, e.g. the
+            # whole falling phase) are not written: the sums start from +0.0 and never give
+            # -0.0
+            force[p, 0], force[p, 1], force[p, 2] = 0.0, 0.0, 0.0
+            torque[p, 0], torque[p, 1], torque[p, 2] = 0.0, 0.0, 0.0
         if CLOSING_KICK > 0.0:
             kick_by(p, velocity, angular_velocity, (fx, fy, fz), (tx, ty, tz), inverse_mass, inverse_inertia,
                     CLOSING_KICK * dt, SPIN)
@@ -712,9 +758,13 @@ def kick_drift(particles, dt, position_at_build, half_skin_squared):
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     moved_too_far = 0
     for p in particle_range(position.shape[0]):
-        if kick_drift_one(p, position, velocity, angular_velocity, (force[p, 0], force[p, 1], force[p, 2]),
-                          (torque[p, 0], torque[p, 1], torque[p, 2]), inverse_mass, inverse_inertia, dt,
-                          position_at_build, half_skin_squared):
+        moved = kick_drift_one(p, position, velocity, angular_velocity, (force[p, 0], force[p, 1], force[p, 2]),
+                               (torque[p, 0], torque[p, 1], torque[p, 2]), inverse_mass, inverse_inertia, dt,
+                               position_at_build, half_skin_squared)
+        if PAIRS:  # zero for the force pass, which sums p's pair reactions there (force_range)
+            force[p, 0], force[p, 1], force[p, 2] = 0.0, 0.0, 0.0
+            torque[p, 0], torque[p, 1], torque[p, 2] = 0.0, 0.0, 0.0
+        if moved:
             moved_too_far += 1
     return moved_too_far
 
