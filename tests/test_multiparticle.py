@@ -552,8 +552,9 @@ def test_one_thread_is_one_block_of_all_particles():
     # thread_blocks balances the work (test_same_bits_on_one_and_two_threads)
     from minidem.engine import blocks
 
-    bounds, first_partner = blocks.blocks(1, None, None, 7)
-    assert bounds.tolist() == [0, 7] and first_partner.tolist() == list(range(7))
+    list_first_partner = np.array([0, 1, 0, 3, 1, 2, 6])  # the list's (State.first_partner)
+    bounds, first_partner = blocks.blocks(1, None, None, list_first_partner)
+    assert bounds.tolist() == [0, 7] and first_partner is list_first_partner  # used as it is, not copied
     assert bounds.dtype == first_partner.dtype == np.int64
 
 

@@ -33,7 +33,7 @@ import math
 import numba
 import numpy as np
 
-from minidem.engine.integrate import particle_kinetic_energy
+from minidem.engine.integrate import block_particles, energy_blocks, particle_kinetic_energy
 
 # A blow-up grows by orders of magnitude within a few contact times, so generous
 # factors cost almost nothing in detection time and rule out false alarms (velocity
@@ -69,6 +69,8 @@ class Guard:
         self.base_budget = initial_kinetic + self.floor + sim.supply_budget
         self.supply_budget = sim.supply_budget
         self.lightest = float(self.mass.min()) if self.mass.size else 1.0
+        # a threaded run's checks share the survey between its threads; the same bits
+        self.survey = survey_threads if sim.threaded else survey
         lower = (scene.position - scene.radius[:, None]).min(axis=0)
         upper = (scene.position + scene.radius[:, None]).max(axis=0)
         walls = scene.walls
@@ -90,7 +92,7 @@ class Guard:
 
     def check(self, state, time: float, gravity_work_max: float) -> tuple[Fault | None, float]:
         """(the first fault found or None, updated largest work of gravity)."""
-        bad, kinetic, top, gravity_work, far, distance = survey(
+        bad, kinetic, top, gravity_work, far, distance = self.survey(
             state.position, state.velocity, state.angular_velocity, state.force, state.torque, self.mass,
             self.inertia, self.initial_position, self.gravity, self.lower, self.upper)
         if bad >= 0:
@@ -121,18 +123,19 @@ class Guard:
 
 
 @numba.njit(cache=True)
-def survey(position, velocity, angular_velocity, force, torque, mass, inertia, initial_position, gravity,
-           lower, upper):
-    """One pass over the particles: (first particle with a non-finite value or -1,
-    kinetic energy J, the particle with the most of it, work of gravity J, the particle
-    farthest outside the box lower-upper and its distance m (<= 0 inside))."""
-    kinetic, top, top_energy, work, far, distance = 0.0, 0, -1.0, 0.0, 0, -math.inf
-    for p in range(position.shape[0]):
+def survey_block(block, position, velocity, angular_velocity, force, torque, mass, inertia, initial_position,
+                 gravity, lower, upper):
+    """The particles of one block (``minidem.engine.integrate.block_particles``): (first
+    particle with a non-finite value or -1, their kinetic energy J, the particle with the
+    most of it and that energy, their work of gravity J, the particle farthest outside
+    the box lower-upper and its distance m (<= 0 inside))."""
+    kinetic, top, top_energy, work, far, distance = 0.0, -1, -1.0, 0.0, -1, -math.inf
+    for p in block_particles(block, position.shape[0]):
         for k in range(3):
             if not (math.isfinite(position[p, k]) and math.isfinite(velocity[p, k])
                     and math.isfinite(angular_velocity[p, k]) and math.isfinite(force[p, k])
                     and math.isfinite(torque[p, k])):
-                return p, kinetic, top, work, far, distance
+                return p, kinetic, top, top_energy, work, far, distance
         energy = particle_kinetic_energy(p, mass, inertia, velocity, angular_velocity)
         kinetic += energy
         if energy > top_energy:
@@ -143,6 +146,63 @@ def survey(position, velocity, angular_velocity, force, torque, mass, inertia, i
             outside = max(outside, lower[k] - position[p, k], position[p, k] - upper[k])
         if outside > distance:
             far, distance = p, outside
+    return -1, kinetic, top, top_energy, work, far, distance
+
+
+@numba.njit(cache=True)
+def survey(position, velocity, angular_velocity, force, torque, mass, inertia, initial_position, gravity,
+           lower, upper):
+    """One pass over the particles: (first particle with a non-finite value or -1,
+    kinetic energy J, the particle with the most of it, work of gravity J, the particle
+    farthest outside the box lower-upper and its distance m (<= 0 inside)).
+
+    Block by block (``survey_block``), the blocks' results combined in order, as
+    ``survey_threads`` combines them: the same bits on one thread or several."""
+    blocks = energy_blocks(position.shape[0])
+    found = np.empty((blocks, 7))
+    for block in range(blocks):
+        _store(found, block, survey_block(block, position, velocity, angular_velocity, force, torque, mass,
+                                          inertia, initial_position, gravity, lower, upper))
+        if found[block, 0] >= 0.0:  # a non-finite value: _combine stops at this block
+            break
+    return _combine(found)
+
+
+@numba.njit(cache=True, parallel=True)
+def survey_threads(position, velocity, angular_velocity, force, torque, mass, inertia, initial_position, gravity,
+                   lower, upper):
+    """``survey`` with the blocks shared between the run's threads (the check between
+    chunks of a threaded run: 9 ms serial at N = 1,000,000); the same result, bit for bit."""
+    blocks = energy_blocks(position.shape[0])
+    found = np.empty((blocks, 7))
+    for block in numba.prange(blocks):
+        _store(found, block, survey_block(block, position, velocity, angular_velocity, force, torque, mass,
+                                          inertia, initial_position, gravity, lower, upper))
+    return _combine(found)
+
+
+@numba.njit(cache=True, inline="always")
+def _store(found, block, result):
+    # particle indices as float64: exact below 2^53
+    bad, kinetic, top, top_energy, work, far, distance = result
+    found[block, 0], found[block, 1], found[block, 2], found[block, 3] = bad, kinetic, top, top_energy
+    found[block, 4], found[block, 5], found[block, 6] = work, far, distance
+
+
+@numba.njit(cache=True)
+def _combine(found):
+    """The blocks' results in block order: the first non-finite particle, the sums in
+    order, the first particle with the most energy and the first farthest out."""
+    kinetic, top, top_energy, work, far, distance = 0.0, 0, -1.0, 0.0, 0, -math.inf
+    for block in range(found.shape[0]):
+        if found[block, 0] >= 0.0:
+            return int(found[block, 0]), kinetic, top, work, far, distance
+        kinetic += found[block, 1]
+        if found[block, 3] > top_energy:
+            top, top_energy = int(found[block, 2]), found[block, 3]
+        work += found[block, 4]
+        if found[block, 6] > distance:
+            far, distance = int(found[block, 5]), found[block, 6]
     return -1, kinetic, top, work, far, distance
 
 

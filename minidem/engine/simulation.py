@@ -89,8 +89,10 @@ SNAPSHOT_COST_RATIO = 200
 # (and earlier for a list rebuild, a frame, a checkpoint or a probe of the thread count):
 # the spacing of the energy samples (at least 200 a run) or CHECK_PARTICLE_STEPS
 # particle-steps, whichever is fewer, but at least CHECK_STEPS steps. Between chunks come
-# the blow-up guard's checks (~10 ns a particle), the thread blocks of the next call
-# (~20 ns a particle on two threads), Python's own work (~0.1 ms) and an unfused drift at
+# the blow-up guard's checks (~9 ns a particle of work, shared between a threaded run's
+# threads), the thread blocks of the next call (two threads: ~8 ns a particle of work,
+# mostly shared; 16-18 ns serial before the first partners were kept per list, see
+# minidem.engine.blocks), Python's own work (~0.1 ms) and an unfused drift at
 # each end of a call: a small scene is checked at every sample as before, and from
 # ~20,000 particles on a chunk is CHECK_STEPS steps at least, so that work costs ~2 % of
 # the cheapest steps (~40 ns a particle-step, settle's falling phase; at 20 steps it was
@@ -521,6 +523,10 @@ class State:
         pair_index = np.zeros(0, dtype=pair_index_type(0, n))
         self.pairs = pair_arrays(np.zeros(n + 1, dtype=np.int64), pair_index, np.zeros((0, h)), np.zeros(0), pair_index,
                                  np.zeros(n + 1, dtype=np.int64))
+        # each particle's first partner in the list (the smallest i whose row lists it,
+        # itself if none; neighbours.reverse_index): the threads' blocks need it before
+        # every call, and it changes only with the list (Simulation.rebuild, restore)
+        self.first_partner = np.arange(n)
         self.builds = 0
 
     def list_near_planes(self) -> None:
@@ -639,9 +645,10 @@ class State:
             setattr(self, group, tuple(items))
         offsets, partners = self.pairs[:2]
         if partners.shape[0]:
-            reverse_offsets, slot = neighbours.reverse_index(offsets, partners, len(offsets) - 1)
+            reverse_offsets, slot, self.first_partner = neighbours.reverse_index(offsets, partners, len(offsets) - 1)
         else:
             reverse_offsets, slot = np.zeros_like(offsets), partners.copy()
+            self.first_partner = np.arange(len(offsets) - 1)
         self.pairs = self.pairs[:5] + (slot, reverse_offsets) + self.pairs[7:]
         # the plane entries' history and overlap restored above belong to the list of
         # the planes near each sphere at the restored position_at_build: that list, again
@@ -985,6 +992,8 @@ class Simulation:
             # allocated: at its peak a rebuild holds the old list and the new one with its
             # histories, not two whole sets of pair arrays.
             state.pairs = None
+            # likewise the old list's first partners (8 bytes a particle), recomputed with the new list
+            old_first_partner, state.first_partner = state.first_partner, None
             try:
                 offsets, found = neighbours.build_pairs(state.position, radius, self.skin + self.max_reach)
                 found = found.astype(pair_index_type(found.shape[0], len(radius)), copy=False)
@@ -996,8 +1005,9 @@ class Simulation:
                 neighbours.carry_history(*old, offsets, found, history, overlap)
             except BaseException:
                 state.pairs = old + (None, None, None, None)  # as before the call (a failure restores from it)
+                state.first_partner = old_first_partner
                 raise
-            del old
+            del old, old_first_partner
             if state.builds == 0:
                 # t = 0: spheres may start touching; their overlap is the 'previous' one.
                 # A few rows at a time: whole-list temporaries (three (M, 3) arrays) were
@@ -1009,7 +1019,7 @@ class Simulation:
                     first = np.repeat(np.arange(start, stop), np.diff(offsets[start:stop + 1]))
                     overlap[entries] = radius[first] + radius[found[entries]] - np.linalg.norm(
                         state.position[first] - state.position[found[entries]], axis=1)
-            reverse_offsets, slot = neighbours.reverse_index(offsets, found, len(radius))
+            reverse_offsets, slot, state.first_partner = neighbours.reverse_index(offsets, found, len(radius))
             state.pairs = pair_arrays(offsets, found, history, overlap, slot, reverse_offsets)
         if state.meshes[0].shape[0]:
             triangles, triangle_material, old_offsets, old_found, old_history, old_overlap = state.meshes
@@ -1215,7 +1225,7 @@ class _RunLoop:
         state, sim = self.state, self.sim
         # a serial kernel runs its particle loops on one thread, whatever it is told
         bounds, first_partner = blocks.blocks(threads if sim.threaded and not one_block else 1, state.planes,
-                                              state.pairs, state.position.shape[0])
+                                              state.pairs, state.first_partner)
         return (state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
                 self.scene.gravity, state.position_at_build, self.half_skin_squared, sim.dt if dt is None else dt,
                 self.start_time, start_step, n_steps, completing,
