@@ -37,7 +37,7 @@ import numpy as np
 
 from minidem.files import atomic_write
 
-# 2: pair_reaction_in_use (whether each reaction row's pair touches)
+# 2: pair_reaction_in_use (which reaction rows hold a touching pair's reaction)
 # 3: plane_history and plane_overlap per near-plane entry (State.list_near_planes), not
 #    per (sphere, plane)
 FORMAT = 3

@@ -56,8 +56,9 @@ Where a pair's reaction goes follows from that. A j finished in the force pass g
 summed straight into its own force and torque rows, which hold only its reactions
 during the pass (zeroed as each particle's drift is done, ``finish_range`` and
 ``kick_drift``) and are read back when j is finished: nothing else on one thread. A j
-left to finish_kick_drift (a partner in another block, whose thread may reach the pair
-at any time; its force rows hold its own contacts' force meanwhile) gets it stored at
+left to finish_kick_drift (a partner in an earlier block, whose thread may reach the
+pair at any time, or one defer_finishing leaves there; its force rows hold its own
+contacts' force meanwhile) gets it stored at
 the pair's slot in its row of the transposed list, marked touching (reaction_in_use),
 and adds those rows in ascending i, from zero, as the rows were summed: the same
 operations either way. The call's last step also stores every pair's
@@ -184,6 +185,18 @@ def engaged_above(constants, row):
     if REACH:
         return -constants[row, constants.shape[1] - 1]
     return 0.0
+
+
+@numba.njit(cache=True, inline="always")
+def end_pair_contact(e, pair_history, reaction_slot, reaction, reaction_in_use):
+    """Pair entry e stops touching: its history is dropped, and a reaction stored at its
+    slot (finish_kick_drift's, or a call's last step's) is zero from now on and no longer
+    read by finish_range."""
+    pair_history[e, :] = 0.0
+    r = non_negative(reaction_slot[e])
+    if reaction_in_use[r]:
+        reaction[r, :] = 0.0
+        reaction_in_use[r] = 0
 
 
 @numba.njit(cache=True, inline="always")
@@ -314,8 +327,8 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
     particles moved more than half the skin, see ``finish_range``).
 
     Particle i owns its walls and the pairs (i, j > i) of its row of the Verlet half
-    list; a pair's force on j and its torque direction are stored per list entry for
-    ``finish_range``. Lever arms of a pair: R_i - d/2 and R_j - d/2 sum to the centre
+    list; a pair's force on j and torque on j go to j's force and torque rows or to the
+    pair's slot in j's transposed row (see the module docstring). Lever arms of a pair: R_i - d/2 and R_j - d/2 sum to the centre
     distance, so the pair's torques balance the moment of its force and angular
     momentum is conserved to round-off.
 
@@ -325,15 +338,17 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
     p's reactions come from the rows i < p, all in this block and done by then, and
     only rows i < p read p's position and velocity. The operations are the same, in
     the same order, as in the separate pass (the same bits), but p's force, velocity
-    and reaction row are still in cache: the separate pass is left with the particles
-    that have a partner in an earlier block (on two threads, about a layer of the pile).
+    and reactions are still in cache: the separate pass is left with the particles
+    that have a partner in an earlier block (on two threads, about a layer of the pile)
+    and those ``defer_finishing`` leaves to it (first_partner -1).
     """
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     pair_row, constants = law
     wall_point, wall_normal, wall_material, wall_history, wall_overlap, near_offsets, near_planes = planes
     base, axis, cylinder_radius, length, cylinder_material, cylinder_history, cylinder_overlap_prev = cylinders
     triangles, triangle_material, mesh_offsets, mesh_candidates, mesh_history, mesh_overlap = meshes
-    offsets, neighbours, pair_history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use = pairs
+    (offsets, neighbours, pair_history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use,
+     reaction_pending) = pairs
     probe_wall, probe, stats, status = tracking
     longest_row = 0
     if PAIRS:
@@ -521,13 +536,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                         if TRACK:
                             note_transitions(stats, time, dt, overlap, previous)
                         if previous > lives_above:
-                            # contact ends: its history is dropped, and a stored reaction on
-                            # j is zero from now on and no longer read by finish_range
-                            pair_history[e, :] = 0.0
-                            r = non_negative(reaction_slot[e])
-                            if reaction_in_use[r]:
-                                reaction[r, :] = 0.0
-                                reaction_in_use[r] = 0
+                            end_pair_contact(e, pair_history, reaction_slot, reaction, reaction_in_use)
             for k in range(n_touching):
                 e = non_negative(touching_entries[k])
                 j = non_negative(neighbours[e])
@@ -541,6 +550,16 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 pair_overlap[e] = overlap
                 if TRACK:
                     note_transitions(stats, time, dt, overlap, previous)
+                lives_above = engaged_above(constants, pair_row[mat, material[j]])
+                if overlap <= lives_above:
+                    # touching by the squared distance, not by its root (the distance within
+                    # a rounding of the contact's reach): apart, as the next step's first
+                    # pass will find it, and ended as there. Evaluated, its overlap 0 would
+                    # keep the history and a stored reaction's flag for good (the end test
+                    # is previous > 0), a force on a partner finished by finish_kick_drift
+                    if previous > lives_above:
+                        end_pair_contact(e, pair_history, reaction_slot, reaction, reaction_in_use)
+                    continue
                 if distance == 0.0:
                     fault(status, TUNNELLED, i, j, PARTICLE)
                     break
@@ -575,6 +594,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                     # j is in this block and finished in this pass, after every row that lists
                     # it (all in this block, in ascending i): its reactions are summed in its
                     # own force and torque rows, zero at the start of the pass (finish_range)
+                    reaction_pending[j] = 1
                     force[j, 0] -= on_i[0]
                     force[j, 1] -= on_i[1]
                     force[j, 2] -= on_i[2]
@@ -626,7 +646,8 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
     it); with the drift fused the rows are zeroed for the next force pass instead."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     sampling, inertia, particle_energy = energy_step
-    offsets, neighbours, history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use = pairs
+    (offsets, neighbours, history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use,
+     reaction_pending) = pairs
     moved_too_far = 0
     for p in range(first, last):
         if p < 0:  # never (non_negative)
@@ -641,16 +662,23 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
         if PAIRS:
             # the reactions of the pairs (i < p, p), summed from zero in ascending i, so the
             # same sum whatever the thread count
+            rfx, rfy, rfz, rtx, rty, rtz = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+            pending = False
             if own_given:
-                # finished in the force pass: summed there in p's force and torque rows
-                rfx, rfy, rfz = force[p, 0], force[p, 1], force[p, 2]
-                rtx, rty, rtz = torque[p, 0], torque[p, 1], torque[p, 2]
+                # finished in the force pass: summed there in p's force and torque rows, if
+                # a pair gave it one (reaction_pending, a byte a particle: a falling particle
+                # reads that byte, not 48 bytes of zeros)
+                pending = reaction_pending[p] != 0
+                if pending:
+                    reaction_pending[p] = 0
+                    rfx, rfy, rfz = force[p, 0], force[p, 1], force[p, 2]
+                    rtx, rty, rtz = torque[p, 0], torque[p, 1], torque[p, 2]
             else:
-                # a partner in an earlier block: stored contiguously (the reverse rows).
+                # left to this pass (a partner in an earlier block, or defer_finishing's):
+                # stored contiguously (the reverse rows).
                 # Only the rows of touching pairs are read (reaction_in_use, a byte a row);
                 # a branch: reading a zero row instead, chosen without one, was 10 % slower
                 # in the falling phase of the settle scene (the loads wait for the flag)
-                rfx, rfy, rfz, rtx, rty, rtz = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
                 for k in range(reverse_offsets[p], reverse_offsets[p + 1]):
                     if k < 0:  # never (non_negative)
                         continue
@@ -668,14 +696,11 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
         if not drift_on:
             force[p, 0], force[p, 1], force[p, 2] = fx, fy, fz
             torque[p, 0], torque[p, 1], torque[p, 2] = tx, ty, tz
-        elif PAIRS and (not own_given or rfx != 0.0 or rfy != 0.0 or rfz != 0.0 or rtx != 0.0 or rty != 0.0
-                        or rtz != 0.0):
+        elif PAIRS and (pending or not own_given):
             # zero for the next force pass, which may sum p's reactions there (a call that
             # goes on after a list rebuild takes new blocks without an opening kick_drift);
-            # nothing reads the total before that pass (the drift is fused). Rows of a p
-            # finished in the force pass that are zero already (no touching pair, e.g. the
-            # whole falling phase) are not written: the sums start from +0.0 and never give
-            # -0.0
+            # nothing reads the total before that pass (the drift is fused). Rows no pair
+            # wrote into are zero still
             force[p, 0], force[p, 1], force[p, 2] = 0.0, 0.0, 0.0
             torque[p, 0], torque[p, 1], torque[p, 2] = 0.0, 0.0, 0.0
         if CLOSING_KICK > 0.0:
@@ -792,7 +817,10 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
     Returns early
     * after a drift that took a particle more than half the skin from where the Verlet
       list was built: the caller rebuilds the list and calls again with ``resume``
-      True, which continues from the force evaluation of the step that drift began;
+      True, which continues from the force evaluation of the step that drift began
+      (the force and torque rows are then zero, as every fused step leaves them, for
+      the force pass to sum reactions into; a state holding totals, e.g. restored, is
+      continued with ``resume`` False, whose opening kick_drift reads and zeroes them);
     * after the step in which the last contact ended (``stop_at_separation``, once a
       contact has occurred; tracked scenes only);
     * on a fault (status[0] != OK).

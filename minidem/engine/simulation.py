@@ -364,7 +364,7 @@ _STATE_TUPLES = {
     # recomputes them); the reactions are kept: a step rewrites them before reading, but
     # the last good state's VTK frame and contact forces read them as they are
     "pairs": ("pair_offsets", "pair_neighbours", "pair_history", "pair_overlap", "pair_reaction", None, None,
-              "pair_reaction_in_use"),
+              "pair_reaction_in_use", None),
 }
 
 
@@ -463,12 +463,15 @@ def pair_index_type(n_entries: int, n_particles: int):
 
 def pair_arrays(offsets, partners, history, overlap, slot, reverse_offsets):
     """The kernel's pair tuple for a new list (``State.pairs``): its reactions zero and no
-    pair touching yet (the next force pass stores both for the pairs that touch). The
-    reactions are in the transposed list's order (row ``slot[e]`` for entry e), and so is
-    ``reaction_in_use``, which says whether a row's pair touches: the reaction gather reads
-    only those rows (minidem.engine.kernel.finish_range)."""
+    pair touching yet. The reactions are in the transposed list's order (row ``slot[e]``
+    for entry e), and so is ``reaction_in_use``, which marks the rows holding a touching
+    pair's reaction; the force pass stores them for the partners finish_kick_drift
+    finishes and, at a call's last step, for every touching pair (State.contact_pairs),
+    and sums the others' straight into their force rows, marking those particles in
+    ``reaction_pending`` (a byte a particle, zero between passes; see
+    minidem.engine.kernel)."""
     return (offsets, partners, history, overlap, np.zeros((partners.shape[0], 6)), slot, reverse_offsets,
-            np.zeros(partners.shape[0], dtype=np.uint8))
+            np.zeros(partners.shape[0], dtype=np.uint8), np.zeros(offsets.shape[0] - 1, dtype=np.uint8))
 
 
 class State:
@@ -1380,9 +1383,9 @@ class _RunLoop:
         of the work of gravity is kept from the checks ``on_grid`` (steps every run of the
         scene checks, resumed or not: the grid of chunks and the list rebuilds), not from a
         chunk cut short by a probe or a checkpoint due by wall time. Before a list rebuild
-        (mid-step) the force and torque arrays hold an earlier step's (the force pass
-        stores them only at a call's last step): finite, as that step's check found; a
-        non-finite force of this step stops the kernel itself."""
+        (mid-step) the force and torque arrays are zero (the force pass sums reactions
+        into them and stores totals only at a call's last step); a non-finite force of
+        this step stops the kernel itself."""
         at_time = self.start_time + step * self.sim.dt
         fault, work_max = self.guard.check(self.state, at_time, self.loop["gravity_work_max"])
         if on_grid:
