@@ -643,7 +643,8 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
     rows and its reactions from its transposed row (see the module docstring). The total
     is stored only when the drift is not fused (the call's last step, and every traced or
     stop-at-separation step: the next call's opening kick and the run between chunks read
-    it); with the drift fused the rows are zeroed for the next force pass instead."""
+    it); with the drift fused, rows that hold something (reactions, or the own force of a
+    particle finish_kick_drift finishes) are zeroed for the next force pass instead."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     sampling, inertia, particle_energy = energy_step
     (offsets, neighbours, history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use,
