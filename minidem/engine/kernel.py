@@ -77,6 +77,7 @@ import math
 
 import numba
 import numpy as np
+from numba.core.compiler import Compiler
 
 from minidem.geometry.primitives import (
     FACE,
@@ -87,6 +88,7 @@ from minidem.geometry.primitives import (
     rotate_slot_into_plane,
     triangle_closest_point,
 )
+from minidem.contact.history import history_column, history_row, history_row_of
 from minidem.engine.integrate import block_sum, drift, kick_by, particle_kinetic_energy
 # the blocks of particles per thread are chosen outside the kernel (advance's bounds and
 # first_partner); named here too, where the kernel's two passes are described
@@ -225,21 +227,19 @@ def rotate_history(history, nx, ny, nz):
 # bounced between the cores (ten times slower than one thread). Loops over walls,
 # triangles and neighbours therefore live in force_range itself.
 @numba.njit(cache=True, inline="always")
-def evaluate_contact(acc, constants_row, history, overlap, previous, normal, curved, vi, wi, vj, wj,
-                     lever_i, lever_j, effective_radius, effective_mass, dt, stats):
+def contact_response(constants_row, history, overlap, previous, normal, curved, vi, wi, vj, wj, lever_i, lever_j,
+                     effective_radius, effective_mass, dt, stats):
     """The one evaluation every contact goes through (sphere-plane, -cylinder,
     -triangle and -sphere): history into the tangent plane (``curved``: the normal
-    can turn), contact-point velocity, the law, and the force and torque on i added to
-    acc = (fx, fy, fz, tx, ty, tz, count). Vectors are 3-tuples; n points from the
-    partner to i.
+    can turn), contact-point velocity and the law. Vectors are 3-tuples; n points from
+    the partner to i.
 
     A wall is a partner that does not move (v_j = w_j = 0, lever_j = 0); its lever arm
     lever_i is the undeformed radius, as in the paper's rigid-body analysis (eqs 3-8).
-    Returns (acc, (force on i), (n x ft), (couple on i), fn, ft, displacement increment,
-    finite); the
-    caller reports a non-finite force as a fault. The status array is not an argument:
-    numba increments and decrements the reference count of an array passed to an
-    inlined function that uses it in a branch, on every call: two atomic adds per
+    Returns ((force on i), (n x ft), (couple on i), fn, ft, displacement increment,
+    finite); the caller reports a non-finite force as a fault. The status array is not
+    an argument: numba increments and decrements the reference count of an array passed
+    to an inlined function that uses it in a branch, on every call: two atomic adds per
     contact on a header the threads share (removing them took the force pass of the
     settle scene, N = 20,000, lattice, one thread, from 1.42 to 1.36 ms a step).
     """
@@ -263,19 +263,102 @@ def evaluate_contact(acc, constants_row, history, overlap, previous, normal, cur
                                       overlap - max(previous, 0.0), normal_velocity, increment, tangential_velocity,
                                       history)
         ok = finite(fn, ftx, fty, ftz)
-    fx, fy, fz, tx, ty, tz, count = acc
     ex, ey, ez = fn * nx - ftx, fn * ny - fty, fn * nz - ftz
     cx, cy, cz = 0.0, 0.0, 0.0
     if SPIN:
         cx, cy, cz = cross(nx, ny, nz, ftx, fty, ftz)
     if TRACK and ok:
         note_peaks(stats, overlap, fn, ftx, fty, ftz)
+    return (ex, ey, ez), (cx, cy, cz), (mx, my, mz), fn, (ftx, fty, ftz), increment, ok
+
+
+@numba.njit(cache=True, inline="always")
+def add_contact(acc, lever_i, on_i, direction, couple):
+    """acc = (fx, fy, fz, tx, ty, tz, count) with one more contact: its force on i, and
+    its torque on i, lever_i (n x ft) plus the couple."""
+    fx, fy, fz, tx, ty, tz, count = acc
+    ex, ey, ez = on_i
+    cx, cy, cz = direction
     if COUPLES:
-        acc = (fx + ex, fy + ey, fz + ez, tx + lever_i * cx + mx, ty + lever_i * cy + my, tz + lever_i * cz + mz,
-               count + 1)
-    else:
-        acc = (fx + ex, fy + ey, fz + ez, tx + lever_i * cx, ty + lever_i * cy, tz + lever_i * cz, count + 1)
-    return acc, (ex, ey, ez), (cx, cy, cz), (mx, my, mz), fn, (ftx, fty, ftz), increment, ok
+        mx, my, mz = couple
+        return (fx + ex, fy + ey, fz + ez, tx + lever_i * cx + mx, ty + lever_i * cy + my, tz + lever_i * cz + mz,
+                count + 1)
+    return fx + ex, fy + ey, fz + ez, tx + lever_i * cx, ty + lever_i * cy, tz + lever_i * cz, count + 1
+
+
+@numba.njit(cache=True, inline="always")
+def evaluate_contact(acc, constants_row, history, overlap, previous, normal, curved, vi, wi, vj, wj,
+                     lever_i, lever_j, effective_radius, effective_mass, dt, stats):
+    """``contact_response`` added to acc (``add_contact``): a wall contact's evaluation.
+    Returns (acc, then contact_response's values)."""
+    on_i, direction, couple, fn, ft, increment, ok = contact_response(
+        constants_row, history, overlap, previous, normal, curved, vi, wi, vj, wj, lever_i, lever_j,
+        effective_radius, effective_mass, dt, stats)
+    return add_contact(acc, lever_i, on_i, direction, couple), on_i, direction, couple, fn, ft, increment, ok
+
+
+class _NoAliasCompiler(Compiler):
+    """numba's compiler with its arrays declared not to overlap (LLVM's noalias on the
+    array arguments), as numba declares them in the loops it compiles from prange:
+    without it LLVM must assume a store to one array may change another, and a contact
+    loop reading some twenty arrays needs more run-time overlap checks than it will
+    emit, so it is not vectorised (measured: 34 ns a contact scalar, 7 ns in 8-wide
+    AVX-512 code, the same bits)."""
+
+    def define_pipelines(self):
+        self.state.flags.noalias = True
+        return super().define_pipelines()
+
+
+# Rows of a tile of pair contacts (``evaluate_pair_tile``): what force_range gathers for
+# each touching pair, and what the evaluation gives back
+# (T_DV: v_i - v_j, whose difference is the contact velocity's first operation)
+T_DX, T_DY, T_DZ, T_DISTANCE, T_OVERLAP, T_PREVIOUS, T_RI, T_RJ, T_MI, T_MJ, T_DV, T_WI, T_WJ = (
+    0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 13, 16)
+TILE_INPUTS = 19
+R_ON_I, R_DIRECTION, R_COUPLE, R_FINITE = 0, 3, 6, 9
+TILE_RESPONSES = 10
+# contacts a tile holds (a compile-time constant: see history_column), and particles a
+# group of them at most: the tile's arrays stay in the L1 and L2 caches. Not a power of
+# two: rows 2 KiB apart fall into two sets of the L1 cache, and the 22 rows written for
+# each gathered contact evicted each other
+TILE_CONTACTS = 264
+TILE_PARTICLES = 128
+
+
+# Not inlined, without numba's reference counting (the arrays are the caller's; nothing
+# here allocates) and with its arrays declared not to overlap: LLVM then compiles the
+# loop over the tile to vector code, several contacts at a time, when the law has no
+# branch it cannot turn into a select (hm, linear and their parts do; hmd and lth run
+# one contact at a time). Each contact's operations are those of a scalar evaluation:
+# the same bits either way.
+@numba.njit(cache=True, error_model="numpy", fastmath=FAST, pipeline_class=_NoAliasCompiler, _nrt=False)
+def evaluate_pair_tile(count, rows, constants, tile, tile_history, response, dt, stats):
+    """The responses (``contact_response``) of the ``count`` pair contacts gathered in
+    ``tile`` (rows T_*, a column a contact), with their law's constants row ``rows[k]``
+    and history ``tile_history[:, k]`` (updated), to ``response`` (rows R_*)."""
+    for k in range(count):
+        overlap = tile[T_OVERLAP, k]
+        inverse = 1.0 / tile[T_DISTANCE, k]
+        ri, rj, mi, mj = tile[T_RI, k], tile[T_RJ, k], tile[T_MI, k], tile[T_MJ, k]
+        reach = ri + rj
+        wi, wj = ZERO, ZERO
+        if SPIN:
+            wi = (tile[T_WI, k], tile[T_WI + 1, k], tile[T_WI + 2, k])
+            wj = (tile[T_WJ, k], tile[T_WJ + 1, k], tile[T_WJ + 2, k])
+        # R* = ri rj / (ri + rj) and m* = mi mj / (mi + mj) through one reciprocal:
+        # a division fewer per contact (divisions and square roots share one unit)
+        mass_sum = mi + mj
+        shared = 1.0 / (reach * mass_sum)
+        on_i, direction, couple, _, _, _, ok = contact_response(
+            constants[rows[k]], history_column(tile_history, k, TILE_CONTACTS), overlap, tile[T_PREVIOUS, k],
+            (tile[T_DX, k] * inverse, tile[T_DY, k] * inverse, tile[T_DZ, k] * inverse), True,
+            (tile[T_DV, k], tile[T_DV + 1, k], tile[T_DV + 2, k]), wi, ZERO, wj,
+            ri - 0.5 * overlap, rj - 0.5 * overlap, ri * rj * mass_sum * shared, mi * mj * reach * shared, dt, stats)
+        response[R_ON_I, k], response[R_ON_I + 1, k], response[R_ON_I + 2, k] = on_i
+        response[R_DIRECTION, k], response[R_DIRECTION + 1, k], response[R_DIRECTION + 2, k] = direction
+        response[R_COUPLE, k], response[R_COUPLE + 1, k], response[R_COUPLE + 2, k] = couple
+        response[R_FINITE, k] = 1.0 if ok else 0.0
 
 
 @numba.njit(cache=True, inline="always")
@@ -320,6 +403,94 @@ def mesh_entry_overlap(px, py, pz, ri, triangles, candidates, start, stop, k, to
     return overlap, nx, ny, nz
 
 
+@numba.njit(cache=True, error_model="numpy", fastmath=FAST, inline="always")
+def settle_group(group_first, group_stop, n_tile, partial, first, last, particles, pairs, constants, scratch,
+                 finishing, dt, stats, status, store_reactions):
+    """Evaluate the tile's n_tile pair contacts (``evaluate_pair_tile``), then, for the
+    particles group_first..group_stop-1 in order, add each one's contacts (tile_end) to
+    its own force (own: gravity and walls) and give each partner its share, and finish
+    the particle (``finish_range``), or leave it to finish_kick_drift with its force
+    stored. With ``partial`` the last particle is not finished: its sum so far goes
+    back to its row of own (its other contacts are in the next tile). Returns (contacts,
+    particles finished that moved more than half the skin). Called once a tile, not
+    once a contact, so the reference counting of its array arguments does not count."""
+    position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
+    (offsets, neighbours, pair_history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use,
+     reaction_pending) = pairs
+    tile, tile_history, response, tile_entry, tile_row, own, own_count, tile_end = scratch
+    first_partner, drift_on, position_at_build, half_skin_squared, energy_step = finishing
+    if PAIRS and n_tile > 0:
+        evaluate_pair_tile(n_tile, tile_row, constants, tile, tile_history, response, dt, stats)
+    active, moved_too_far = 0, 0
+    for i in range(group_first, group_stop):
+        if i < 0:  # never (non_negative)
+            continue
+        g = i - group_first
+        acc = (own[g, 0], own[g, 1], own[g, 2], own[g, 3], own[g, 4], own[g, 5], own_count[g])
+        if PAIRS:
+            for k in range(tile_end[g - 1] if g > 0 else 0, tile_end[g]):
+                if k < 0:  # never (non_negative)
+                    continue
+                e = non_negative(tile_entry[k])
+                j = non_negative(neighbours[e])
+                if response[R_FINITE, k] == 0.0:
+                    fault(status, NON_FINITE_FORCE, i, j, PARTICLE)
+                    break
+                for c in range(tile_history.shape[0]):
+                    pair_history[e, c] = tile_history[c, k]
+                overlap = tile[T_OVERLAP, k]
+                lever_j = tile[T_RJ, k] - 0.5 * overlap
+                on_i = (response[R_ON_I, k], response[R_ON_I + 1, k], response[R_ON_I + 2, k])
+                direction = (response[R_DIRECTION, k], response[R_DIRECTION + 1, k], response[R_DIRECTION + 2, k])
+                couple = (response[R_COUPLE, k], response[R_COUPLE + 1, k], response[R_COUPLE + 2, k])
+                acc = add_contact(acc, tile[T_RI, k] - 0.5 * overlap, on_i, direction, couple)
+                # j's share: the force on i (j gets its opposite) and the torque on j,
+                # R_j' (n x ft) minus the couple on i
+                tjx, tjy, tjz = 0.0, 0.0, 0.0
+                if COUPLES:
+                    tjx, tjy, tjz = (lever_j * direction[0] - couple[0], lever_j * direction[1] - couple[1],
+                                     lever_j * direction[2] - couple[2])
+                elif SPIN:
+                    tjx, tjy, tjz = lever_j * direction[0], lever_j * direction[1], lever_j * direction[2]
+                direct = j < last and first_partner[j] >= first
+                if direct:
+                    # j is in this block and finished in this pass, after every row that lists
+                    # it (all in this block, in ascending i): its reactions are summed in its
+                    # own force and torque rows, zero at the start of the pass (finish_range)
+                    reaction_pending[j] = 1
+                    force[j, 0] -= on_i[0]
+                    force[j, 1] -= on_i[1]
+                    force[j, 2] -= on_i[2]
+                    if SPIN:
+                        torque[j, 0] += tjx
+                        torque[j, 1] += tjy
+                        torque[j, 2] += tjz
+                if store_reactions or not direct:
+                    # at the slot of the entry in j's reverse row: read by finish_kick_drift
+                    # for a j it finishes, and at a step whose state the run sees
+                    # (State.contact_pairs)
+                    r = non_negative(reaction_slot[e])
+                    reaction_in_use[r] = 1
+                    reaction[r, 0], reaction[r, 1], reaction[r, 2] = on_i
+                    if SPIN:
+                        reaction[r, 3], reaction[r, 4], reaction[r, 5] = tjx, tjy, tjz
+        fx, fy, fz, tx, ty, tz, count = acc
+        if partial and i == group_stop - 1:
+            own[g, 0], own[g, 1], own[g, 2], own[g, 3], own[g, 4], own[g, 5], own_count[g] = acc
+            # its row of own moves to the front: the next group starts at i
+            own[0, 0], own[0, 1], own[0, 2], own[0, 3], own[0, 4], own[0, 5], own_count[0] = acc
+            continue
+        active += count
+        if first_partner[i] >= first:
+            moved_too_far += finish_range(i, i + 1, last, first_partner, particles, pairs, dt, drift_on,
+                                          position_at_build, half_skin_squared, energy_step, True,
+                                          (fx, fy, fz, tx, ty, tz))
+        else:  # finished by finish_kick_drift, from the force stored here
+            force[i, 0], force[i, 1], force[i, 2] = fx, fy, fz
+            torque[i, 0], torque[i, 1], torque[i, 2] = tx, ty, tz
+    return active, moved_too_far
+
+
 @numba.njit(cache=True, error_model="numpy", fastmath=FAST, inline=INLINE)
 def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking,
                 first_partner, drift_on, position_at_build, half_skin_squared, energy_step):
@@ -354,14 +525,39 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
     if PAIRS:
         for i in range(first, last):
             longest_row = max(longest_row, offsets[i + 1] - offsets[i])
+    # Pair contacts are evaluated a tile at a time (evaluate_pair_tile: vector code): the
+    # particles are taken in order, their walls evaluated and their touching pairs
+    # gathered into the tile; when the tile is full, or holds TILE_PARTICLES particles,
+    # it is evaluated and settle_group sums each particle's contacts and finishes it, in
+    # order: the same operations in the same order as one particle at a time. A particle
+    # whose contacts fill the tile is summed in parts and finished with the next tile.
     touching_entries = np.empty(longest_row, dtype=np.int64)
+    tile = np.empty((TILE_INPUTS, TILE_CONTACTS if PAIRS else 0))
+    tile_history = np.empty((pair_history.shape[1], TILE_CONTACTS if PAIRS else 0))
+    response = np.empty((TILE_RESPONSES, TILE_CONTACTS if PAIRS else 0))
+    tile_entry = np.empty(TILE_CONTACTS if PAIRS else 0, dtype=np.int64)
+    tile_row = np.empty(TILE_CONTACTS if PAIRS else 0, dtype=np.int64)
+    own = np.empty((TILE_PARTICLES, 6))  # gravity, walls and pairs summed so far
+    own_count = np.empty(TILE_PARTICLES, dtype=np.int64)
+    tile_end = np.empty(TILE_PARTICLES, dtype=np.int64)  # each particle's contacts end there
+    scratch = (tile, tile_history, response, tile_entry, tile_row, own, own_count, tile_end)
+    finishing = (first_partner, drift_on, position_at_build, half_skin_squared, energy_step)
     # every pair's reaction also at its slot at a step whose state the run sees (the
     # call's last, unfused): the contact forces of the VTK frames (State.contact_pairs)
     store_reactions = not drift_on
     active, moved_too_far = 0, 0
+    group_first = first
+    n_tile = 0
     for i in range(first, last):
         if i < 0:  # never: proves i >= 0 to the compiler (non_negative)
             continue
+        if i - group_first == TILE_PARTICLES:
+            group_active, group_moved = settle_group(group_first, i, n_tile, False, first, last, particles, pairs,
+                                                     constants, scratch, finishing, dt, stats, status,
+                                                     store_reactions)
+            active += group_active
+            moved_too_far += group_moved
+            group_first, n_tile = i, 0
         px, py, pz, ri, mi, mat = position[i, 0], position[i, 1], position[i, 2], radius[i], mass[i], material[i]
         vi = (velocity[i, 0], velocity[i, 1], velocity[i, 2])
         wi = ZERO
@@ -392,7 +588,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 fault(status, TUNNELLED, i, w, PLANE)
                 break
             acc, _, _, _, fn, ft, increment, ok = evaluate_contact(
-                acc, constants[pair_row[mat, wall_material[w]]], wall_history[k], overlap, previous,
+                acc, constants[pair_row[mat, wall_material[w]]], history_row(wall_history, k), overlap, previous,
                 (wall_normal[w, 0], wall_normal[w, 1], wall_normal[w, 2]), False, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi,
                 dt, stats)
             if not ok:
@@ -428,7 +624,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                         break
                     continue
                 acc, _, _, _, _, _, _, ok = evaluate_contact(
-                    acc, constants[pair_row[mat, cylinder_material[c]]], cylinder_history[i, c], overlap, previous,
+                    acc, constants[pair_row[mat, cylinder_material[c]]], history_row_of(cylinder_history, i, c), overlap, previous,
                     (nx, ny, nz), True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)
                 if not ok:
                     fault(status, NON_FINITE_FORCE, i, c, CYLINDER)
@@ -489,7 +685,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                         fault(status, TUNNELLED, i, t, TRIANGLE)
                         break
                     acc, _, _, _, _, _, _, ok = evaluate_contact(
-                        acc, constants[pair_row[mat, triangle_material[t]]], mesh_history[k], overlap, previous,
+                        acc, constants[pair_row[mat, triangle_material[t]]], history_row(mesh_history, k), overlap, previous,
                         (nx, ny, nz), True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)
                     if not ok:
                         fault(status, NON_FINITE_FORCE, i, t, TRIANGLE)
@@ -506,12 +702,14 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                             mesh_overlap[k] = overlap
                             mesh_history[k, :] = 0.0
 
+
+
+        g = i - group_first
         if PAIRS:
             # Two passes over the row. Whether a listed pair touches is unpredictable
-            # (about a third do), and a mispredicted branch would flush the long
-            # square-root and division chains of the contacts in flight: the first pass
-            # only collects the touching entries, without a branch on it; the second
-            # evaluates them back to back.
+            # (about a third do), and a mispredicted branch would flush the work in
+            # flight: the first pass only collects the touching entries, without a
+            # branch on it; the second gathers them into the tile.
             n_touching = 0
             for e in range(offsets[i], offsets[i + 1]):
                 if e < 0:  # never (non_negative)
@@ -550,7 +748,8 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 pair_overlap[e] = overlap
                 if TRACK:
                     note_transitions(stats, time, dt, overlap, previous)
-                lives_above = engaged_above(constants, pair_row[mat, material[j]])
+                row = pair_row[mat, material[j]]
+                lives_above = engaged_above(constants, row)
                 if overlap <= lives_above:
                     # touching by the squared distance, not by its root (the distance within
                     # a rounding of the contact's reach): apart, as the next step's first
@@ -563,64 +762,40 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 if distance == 0.0:
                     fault(status, TUNNELLED, i, j, PARTICLE)
                     break
-                inverse = 1.0 / distance
-                wj = ZERO
+                if n_tile == TILE_CONTACTS:
+                    # the tile is full: the particles before i are finished, i's contacts so
+                    # far summed into its row of own, which moves to the front
+                    own[g, 0], own[g, 1], own[g, 2], own[g, 3], own[g, 4], own[g, 5], own_count[g] = acc
+                    tile_end[g] = n_tile
+                    group_active, group_moved = settle_group(group_first, i + 1, n_tile, True, first, last,
+                                                             particles, pairs, constants, scratch, finishing, dt,
+                                                             stats, status, store_reactions)
+                    active += group_active
+                    moved_too_far += group_moved
+                    acc = (own[g, 0], own[g, 1], own[g, 2], own[g, 3], own[g, 4], own[g, 5], own_count[g])
+                    group_first, n_tile, g = i, 0, 0
+                tile_entry[n_tile] = e
+                tile_row[n_tile] = row
+                tile[T_DX, n_tile], tile[T_DY, n_tile], tile[T_DZ, n_tile] = dx, dy, dz
+                tile[T_DISTANCE, n_tile], tile[T_OVERLAP, n_tile], tile[T_PREVIOUS, n_tile] = (
+                    distance, overlap, previous)
+                tile[T_RI, n_tile], tile[T_RJ, n_tile], tile[T_MI, n_tile], tile[T_MJ, n_tile] = ri, rj, mi, mass[j]
+                # the contact velocity reads v_i - v_j only (pair_contact_velocity)
+                tile[T_DV, n_tile], tile[T_DV + 1, n_tile], tile[T_DV + 2, n_tile] = (
+                    vi[0] - velocity[j, 0], vi[1] - velocity[j, 1], vi[2] - velocity[j, 2])
                 if SPIN:
-                    wj = (angular_velocity[j, 0], angular_velocity[j, 1], angular_velocity[j, 2])
-                mj = mass[j]
-                lever_j = rj - 0.5 * overlap
-                # R* = ri rj / (ri + rj) and m* = mi mj / (mi + mj) through one reciprocal:
-                # a division fewer per contact (divisions and square roots share one unit)
-                mass_sum = mi + mj
-                shared = 1.0 / (reach * mass_sum)
-                acc, on_i, direction, couple, _, _, _, ok = evaluate_contact(
-                    acc, constants[pair_row[mat, material[j]]], pair_history[e], overlap, previous,
-                    (dx * inverse, dy * inverse, dz * inverse), True,
-                    vi, wi, (velocity[j, 0], velocity[j, 1], velocity[j, 2]), wj,
-                    ri - 0.5 * overlap, lever_j, ri * rj * mass_sum * shared, mi * mj * reach * shared, dt, stats)
-                if not ok:
-                    fault(status, NON_FINITE_FORCE, i, j, PARTICLE)
-                    break
-                # j's share: the force on i (j gets its opposite) and the torque on j,
-                # R_j' (n x ft) minus the couple on i
-                tjx, tjy, tjz = 0.0, 0.0, 0.0
-                if COUPLES:
-                    tjx, tjy, tjz = (lever_j * direction[0] - couple[0], lever_j * direction[1] - couple[1],
-                                     lever_j * direction[2] - couple[2])
-                elif SPIN:
-                    tjx, tjy, tjz = lever_j * direction[0], lever_j * direction[1], lever_j * direction[2]
-                direct = j < last and first_partner[j] >= first
-                if direct:
-                    # j is in this block and finished in this pass, after every row that lists
-                    # it (all in this block, in ascending i): its reactions are summed in its
-                    # own force and torque rows, zero at the start of the pass (finish_range)
-                    reaction_pending[j] = 1
-                    force[j, 0] -= on_i[0]
-                    force[j, 1] -= on_i[1]
-                    force[j, 2] -= on_i[2]
-                    if SPIN:
-                        torque[j, 0] += tjx
-                        torque[j, 1] += tjy
-                        torque[j, 2] += tjz
-                if store_reactions or not direct:
-                    # at the slot of the entry in j's reverse row: read by finish_kick_drift
-                    # for a j it finishes, and at a step whose state the run sees
-                    # (State.contact_pairs)
-                    r = non_negative(reaction_slot[e])
-                    reaction_in_use[r] = 1
-                    reaction[r, 0], reaction[r, 1], reaction[r, 2] = on_i
-                    if SPIN:
-                        reaction[r, 3], reaction[r, 4], reaction[r, 5] = tjx, tjy, tjz
-
-        fx, fy, fz, tx, ty, tz, count = acc
-        active += count
-        if first_partner[i] >= first:
-            moved_too_far += finish_range(i, i + 1, last, first_partner, particles, pairs, dt, drift_on,
-                                          position_at_build, half_skin_squared, energy_step, True,
-                                          (fx, fy, fz, tx, ty, tz))
-        else:  # finished by finish_kick_drift, from the force stored here
-            force[i, 0], force[i, 1], force[i, 2] = fx, fy, fz
-            torque[i, 0], torque[i, 1], torque[i, 2] = tx, ty, tz
+                    tile[T_WI, n_tile], tile[T_WI + 1, n_tile], tile[T_WI + 2, n_tile] = wi
+                    tile[T_WJ, n_tile], tile[T_WJ + 1, n_tile], tile[T_WJ + 2, n_tile] = (
+                        angular_velocity[j, 0], angular_velocity[j, 1], angular_velocity[j, 2])
+                for c in range(pair_history.shape[1]):
+                    tile_history[c, n_tile] = pair_history[e, c]
+                n_tile += 1
+        own[g, 0], own[g, 1], own[g, 2], own[g, 3], own[g, 4], own[g, 5], own_count[g] = acc
+        tile_end[g] = n_tile
+    group_active, group_moved = settle_group(group_first, last, n_tile, False, first, last, particles, pairs,
+                                             constants, scratch, finishing, dt, stats, status, store_reactions)
+    active += group_active
+    moved_too_far += group_moved
     return active, moved_too_far
 
 

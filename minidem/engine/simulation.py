@@ -29,7 +29,7 @@ import numba
 import numpy as np
 
 from minidem import __version__
-from minidem.contact import laws
+from minidem.contact import history as contact_history, laws
 from minidem.engine import blocks, compile_speed, integrate, kernel, warmup
 from minidem.errors import MinidemError
 from minidem.geometry import neighbours, primitives
@@ -52,7 +52,8 @@ _TEMPLATE = Path(kernel.__file__)
 _BLOCK_START = "# >>> specialisation block"
 _BLOCK_END = "# <<< specialisation block"
 # the files a kernel is built from: the template and the modules it imports
-_ENGINE_SOURCES = (Path(kernel.__file__), Path(primitives.__file__), Path(integrate.__file__))
+_ENGINE_SOURCES = (Path(kernel.__file__), Path(primitives.__file__), Path(integrate.__file__),
+                   Path(contact_history.__file__))
 # Scenes with more particles than this run their particle loops in parallel; smaller
 # ones run serial and record contact statistics (first touch, separation, peaks).
 # A scene with run.stop = "separation" always runs serial: its stop and its contact
@@ -1620,14 +1621,12 @@ def _numba_cause(exc: Exception) -> str:
     return ("; ".join(message[:2]) or lines[0]) + where
 
 
-# the argument types the kernel passes a law's force function (minidem.contact.laws.FORCE_ARGUMENTS)
-_FORCE_SIGNATURE = (numba.types.Array(numba.types.float64, 1, "C"), *(numba.types.float64,) * 5,
-                    numba.types.UniTuple(numba.types.float64, 3), numba.types.UniTuple(numba.types.float64, 3),
-                    numba.types.Array(numba.types.float64, 1, "C"))
-
-
 _ROW, _FLOAT, _VECTOR = (numba.types.Array(numba.types.float64, 1, "C"), numba.types.float64,
                          numba.types.UniTuple(numba.types.float64, 3))
+# a contact's history as the kernel hands it over (minidem.contact.history)
+_HISTORY = contact_history.contact_history
+# the argument types the kernel passes a law's force function (minidem.contact.laws.FORCE_ARGUMENTS)
+_FORCE_SIGNATURE = (_ROW, *(_FLOAT,) * 5, _VECTOR, _VECTOR, _HISTORY)
 # a law with a couple (law.couples) also takes the relative spin, the normal and dt
 _COUPLE_FORCE_SIGNATURE = (*_FORCE_SIGNATURE, _VECTOR, _VECTOR, _FLOAT)
 
@@ -1639,11 +1638,11 @@ def force_signature(law: laws.ContactLaw) -> tuple:
 # the argument types a part's function is called with (minidem.contact.laws.PART_ARGUMENTS)
 # and how many numbers it returns (0: one number)
 _PART_SIGNATURES = {
-    "normal": ((_ROW, *(_FLOAT,) * 4, _ROW), 3),
+    "normal": ((_ROW, *(_FLOAT,) * 4, _HISTORY), 3),
     "damping": ((_ROW, *(_FLOAT,) * 6), 0),
-    "tangential": ((_ROW, *(_FLOAT,) * 7, _VECTOR, _VECTOR, _ROW), 3),
-    "rolling": ((_ROW, *(_FLOAT,) * 6, _VECTOR, _VECTOR, _ROW), 3),
-    "twisting": ((_ROW, *(_FLOAT,) * 8, _ROW), 0),
+    "tangential": ((_ROW, *(_FLOAT,) * 7, _VECTOR, _VECTOR, _HISTORY), 3),
+    "rolling": ((_ROW, *(_FLOAT,) * 6, _VECTOR, _VECTOR, _HISTORY), 3),
+    "twisting": ((_ROW, *(_FLOAT,) * 8, _HISTORY), 0),
 }
 
 
