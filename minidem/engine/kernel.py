@@ -33,7 +33,8 @@ of consecutive particles per thread:
 
     compute_forces      particle i owns its walls and the pairs (i, j > i) of its row of
                         the Verlet half list: it computes them through the one contact
-                        evaluation (``evaluate_contact``), writes its own force (or
+                        evaluation (``contact_response``; pairs a tile at a time in
+                        vector code, ``evaluate_pair_tile`` and ``settle_group``), writes its own force (or
                         hands it to finish_range in registers, see below), and
                         gives j its share of each pair (the opposite force, j's torque)
     finish_kick_drift   particle p adds the reactions of its touching pairs (i < p, p)
