@@ -463,6 +463,54 @@ def test_same_bits_on_one_and_two_threads(monkeypatch):
         assert np.array_equal(runs[0].energy, other.energy)
 
 
+def test_a_sphere_with_more_contacts_than_a_tile_gets_all_their_reactions():
+    # One large sphere (index 0: it owns every pair of its row) touching 600 small ones
+    # spread evenly over its surface (a Fibonacci lattice), each just apart from it and
+    # moving in at 1 m/s while sliding sideways: from the first step on, its row holds more than two tiles' worth of
+    # contacts (kernel.TILE_CONTACTS), so its force is summed over three tiles
+    # (settle_group's partial path). No gravity, no walls: the forces of the last step
+    # must cancel (each pair's force on j is minus its force on i) to round-off, and the
+    # torques balance the moments of the forces (lever arms sum to the centre distance),
+    # so the momenta stay as they were. A tile's contacts lost or counted twice would
+    # leave the large sphere hundreds of contact forces off.
+    from minidem.engine import kernel
+
+    n_small = 600
+    assert n_small > 2 * kernel.TILE_CONTACTS
+    big, small = 0.05, 0.002
+    index = np.arange(n_small) + 0.5
+    polar = np.arccos(1.0 - 2.0 * index / n_small)
+    azimuth = math.pi * (1.0 + 5.0**0.5) * index
+    direction = np.stack([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar)], axis=1)
+    centres = direction * (big + small) * (1.0 + 1e-12)
+    tangent = np.cross(direction, [0.3, 0.5, 0.8])
+    sliding = 0.1 * tangent / np.linalg.norm(tangent, axis=1)[:, None] - 1.0 * direction
+    particles = [{"position": [0.0, 0.0, 0.0], "radius": big, "material": "glass",
+                  "angular_velocity": [0.0, 0.0, 5.0]}]
+    particles += [{"position": c.tolist(), "radius": small, "material": "glass", "velocity": v.tolist()}
+                  for c, v in zip(centres, sliding)]
+    data = {"materials": {"glass": GLASS}, "contact": {"law": "hm", "friction": 0.3},
+            "particles": particles, "run": {"stop": "time", "end_time": 2e-6, "dt": 1e-7, "threads": 1},
+            "output": {"vtk": False}}
+    result = run(data)
+    scene = result.scene
+    assert result.steps == 20
+    assert result.contacts == n_small  # every small sphere still touches the large one
+    force, torque = result.force, result.torque
+    # every contact pushes: the large sphere's share is large, and it is the whole sum
+    scale = np.abs(force[1:]).sum()
+    assert np.linalg.norm(force[1:], axis=1).min() > 0
+    assert np.all(np.abs(force.sum(axis=0)) <= 1e-12 * scale)
+    moments = np.cross(result.position, force).sum(axis=0) + torque.sum(axis=0)
+    assert np.all(np.abs(moments) <= 1e-12 * scale * (big + small))
+    p0, l0 = momenta(result, scene.velocity, scene.angular_velocity, scene.position)
+    p1, l1 = momenta(result, result.velocity, result.angular_velocity, result.position)
+    p_scale = np.sum(scene.mass * np.linalg.norm(scene.velocity, axis=1))
+    assert np.all(np.abs(p1 - p0) <= 1e-13 * p_scale * result.steps)
+    l_scale = p_scale * (big + small) + scene.inertia[0] * 5.0
+    assert np.all(np.abs(l1 - l0) <= 1e-13 * l_scale * result.steps)
+
+
 def test_energy_samples_taken_in_the_loop_are_the_kinetic_energy_at_their_step():
     # The kernel takes the run's kinetic-energy samples without returning to Python: each
     # particle's energy as it is finished (closing kick, before the next step's drift),
