@@ -491,24 +491,9 @@ def settle_group(group_first, group_stop, partial_at, first, last, particles, pa
             own[0, 0], own[0, 1], own[0, 2], own[0, 3], own[0, 4], own[0, 5], own_count[0] = acc
             continue
         active += acc[6]
-        moved_too_far += settle_particle(i, acc, first, last, particles, pairs, finishing, dt)
+        moved_too_far += finish_range(i, i + 1, last, first_partner, particles, pairs, dt, drift_on,
+                                      position_at_build, half_skin_squared, energy_step, True, acc, first)
     return active, moved_too_far
-
-
-@numba.njit(cache=True, error_model="numpy", fastmath=FAST, inline="always")
-def settle_particle(i, acc, first, last, particles, pairs, finishing, dt):
-    """Particle i with all its contacts summed (acc, as add_contact's): finished now
-    (``finish_range``), or its force stored for finish_kick_drift. Returns 1 if it moved
-    more than half the skin, else 0."""
-    force, torque = particles[3], particles[4]
-    first_partner, drift_on, position_at_build, half_skin_squared, energy_step = finishing
-    fx, fy, fz, tx, ty, tz, _ = acc
-    if first_partner[i] >= first:
-        return finish_range(i, i + 1, last, first_partner, particles, pairs, dt, drift_on, position_at_build,
-                            half_skin_squared, energy_step, True, (fx, fy, fz, tx, ty, tz))
-    force[i, 0], force[i, 1], force[i, 2] = fx, fy, fz
-    torque[i, 0], torque[i, 1], torque[i, 2] = tx, ty, tz
-    return 0
 
 
 @numba.njit(cache=True, error_model="numpy", fastmath=FAST, inline=INLINE)
@@ -728,9 +713,10 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
 
 
 
-        if not PAIRS:  # no tile: finished at once (one inlined finish_range, as for one sphere)
+        if not PAIRS:  # no tile: finished at once
             active += acc[6]
-            moved_too_far += settle_particle(i, acc, first, last, particles, pairs, finishing, dt)
+            moved_too_far += finish_range(i, i + 1, last, first_partner, particles, pairs, dt, drift_on,
+                                          position_at_build, half_skin_squared, energy_step, True, acc, first)
             continue
         g = i - group_first
         if PAIRS:
@@ -825,7 +811,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
 
 @numba.njit(cache=True, fastmath=FAST, inline="always")
 def finish_range(first, last, finished_from, first_partner, particles, pairs, dt, drift_on, position_at_build,
-                 half_skin_squared, energy_step, own_given, own):
+                 half_skin_squared, energy_step, own_given, own, block_first):
     """Particles first..last-1, except those whose first partner is at ``finished_from``
     or later (finished in the force pass): add the pair reactions and apply the closing
     kick; with ``drift_on`` also the next step's opening half kick and drift (the same
@@ -837,8 +823,10 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
     pass of its own (see ``advance``).
 
     ``own_given``: the force pass finishing its particle i (first = i, last = i + 1) hands
-    over ``own`` = (force, torque) of i's own contacts and gravity in registers, and its
-    reactions are in its force and torque rows; else its own force is read from those
+    over ``own`` = (fx, fy, fz, tx, ty, tz, contacts) of i's own contacts and gravity in
+    registers, and its reactions are in its force and torque rows; if i has a partner
+    before ``block_first`` (the force pass's first particle) it is not finished but its
+    own force stored, for finish_kick_drift; else its own force is read from those
     rows and its reactions from its transposed row (see the module docstring). The total
     is stored only when the drift is not fused (the call's last step, and every traced or
     stop-at-separation step: the next call's opening kick and the run between chunks read
@@ -855,7 +843,11 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
         if first_partner[p] >= finished_from:
             continue
         if own_given:
-            fx, fy, fz, tx, ty, tz = own
+            fx, fy, fz, tx, ty, tz, _ = own
+            if first_partner[p] < block_first:
+                force[p, 0], force[p, 1], force[p, 2] = fx, fy, fz
+                torque[p, 0], torque[p, 1], torque[p, 2] = tx, ty, tz
+                continue
         else:
             fx, fy, fz = force[p, 0], force[p, 1], force[p, 2]
             tx, ty, tz = torque[p, 0], torque[p, 1], torque[p, 2]
@@ -956,7 +948,7 @@ def finish_kick_drift(particles, pairs, dt, drift_on, position_at_build, half_sk
     for block in particle_range(threads):
         moved_too_far += finish_range(bounds[block], bounds[block + 1], bounds[block], first_partner, particles,
                                       pairs, dt, drift_on, position_at_build, half_skin_squared, energy_step, False,
-                                      (0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+                                      (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0), 0)
     return moved_too_far
 
 
