@@ -542,9 +542,9 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
     response = np.empty((TILE_RESPONSES, TILE_CONTACTS if PAIRS else 0))
     tile_entry = np.empty(TILE_CONTACTS if PAIRS else 0, dtype=np.int64)
     tile_row = np.empty(TILE_CONTACTS if PAIRS else 0, dtype=np.int64)
-    own = np.empty((TILE_PARTICLES, 6))  # gravity, walls and pairs summed so far
-    own_count = np.empty(TILE_PARTICLES, dtype=np.int64)
-    tile_end = np.empty(TILE_PARTICLES, dtype=np.int64)  # each particle's contacts end there
+    own = np.empty((TILE_PARTICLES if PAIRS else 0, 6))  # gravity, walls and pairs summed so far
+    own_count = np.empty(TILE_PARTICLES if PAIRS else 0, dtype=np.int64)
+    tile_end = np.empty(TILE_PARTICLES if PAIRS else 0, dtype=np.int64)  # each particle's contacts end there
     scratch = (tile, tile_history, response, tile_entry, tile_row, own, own_count, tile_end)
     finishing = (first_partner, drift_on, position_at_build, half_skin_squared, energy_step)
     # every pair's reaction also at its slot at a step whose state the run sees (the
@@ -719,91 +719,90 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                                           position_at_build, half_skin_squared, energy_step, True, acc, first)
             continue
         g = i - group_first
-        if PAIRS:
-            # Two passes over the row. Whether a listed pair touches is unpredictable
-            # (about a third do), and a mispredicted branch would flush the work in
-            # flight: the first pass only collects the touching entries, without a
-            # branch on it; the second gathers them into the tile.
-            n_touching = 0
-            for e in range(offsets[i], offsets[i + 1]):
-                if e < 0:  # never (non_negative)
-                    continue
-                j = non_negative(neighbours[e])
-                dx, dy, dz = px - position[j, 0], py - position[j, 1], pz - position[j, 2]
-                distance_squared = dx * dx + dy * dy + dz * dz
-                reach = ri + radius[j]
-                lives_above = 0.0
-                if REACH:  # compile-time: a contact lives while the distance is below r_i + r_j + reach
-                    lives_above = engaged_above(constants, pair_row[mat, material[j]])
-                    touching = distance_squared < (reach - lives_above) * (reach - lives_above)
-                else:
-                    touching = distance_squared < reach * reach
-                touching_entries[n_touching] = e
-                n_touching += touching
-                previous = pair_overlap[e]
-                if TRACK or ((not touching) & (previous > lives_above)):
-                    if not touching:
-                        overlap = reach - math.sqrt(distance_squared)
-                        pair_overlap[e] = overlap
-                        if TRACK:
-                            note_transitions(stats, time, dt, overlap, previous)
-                        if previous > lives_above:
-                            end_pair_contact(e, pair_history, reaction_slot, reaction, reaction_in_use)
-            for k in range(n_touching):
-                e = non_negative(touching_entries[k])
-                j = non_negative(neighbours[e])
-                dx, dy, dz = px - position[j, 0], py - position[j, 1], pz - position[j, 2]
-                distance_squared = dx * dx + dy * dy + dz * dz
-                rj = radius[j]
-                reach = ri + rj
-                previous = pair_overlap[e]
-                distance = math.sqrt(distance_squared)
-                overlap = reach - distance
-                pair_overlap[e] = overlap
-                if TRACK:
-                    note_transitions(stats, time, dt, overlap, previous)
-                row = pair_row[mat, material[j]]
-                lives_above = engaged_above(constants, row)
-                if overlap <= lives_above:
-                    # touching by the squared distance, not by its root (the distance within
-                    # a rounding of the contact's reach): apart, as the next step's first
-                    # pass will find it, and ended as there. Evaluated, its overlap 0 would
-                    # keep the history and a stored reaction's flag for good (the end test
-                    # is previous > 0), a force on a partner finished by finish_kick_drift
+        # Two passes over the row. Whether a listed pair touches is unpredictable
+        # (about a third do), and a mispredicted branch would flush the work in
+        # flight: the first pass only collects the touching entries, without a
+        # branch on it; the second gathers them into the tile.
+        n_touching = 0
+        for e in range(offsets[i], offsets[i + 1]):
+            if e < 0:  # never (non_negative)
+                continue
+            j = non_negative(neighbours[e])
+            dx, dy, dz = px - position[j, 0], py - position[j, 1], pz - position[j, 2]
+            distance_squared = dx * dx + dy * dy + dz * dz
+            reach = ri + radius[j]
+            lives_above = 0.0
+            if REACH:  # compile-time: a contact lives while the distance is below r_i + r_j + reach
+                lives_above = engaged_above(constants, pair_row[mat, material[j]])
+                touching = distance_squared < (reach - lives_above) * (reach - lives_above)
+            else:
+                touching = distance_squared < reach * reach
+            touching_entries[n_touching] = e
+            n_touching += touching
+            previous = pair_overlap[e]
+            if TRACK or ((not touching) & (previous > lives_above)):
+                if not touching:
+                    overlap = reach - math.sqrt(distance_squared)
+                    pair_overlap[e] = overlap
+                    if TRACK:
+                        note_transitions(stats, time, dt, overlap, previous)
                     if previous > lives_above:
                         end_pair_contact(e, pair_history, reaction_slot, reaction, reaction_in_use)
-                    continue
-                if distance == 0.0:
-                    fault(status, TUNNELLED, i, j, PARTICLE)
-                    break
-                if n_tile == TILE_CONTACTS:
-                    # the tile is full: the particles before i are finished, i's contacts so
-                    # far summed into its row of own, which moves to the front
-                    own[g, 0], own[g, 1], own[g, 2], own[g, 3], own[g, 4], own[g, 5], own_count[g] = acc
-                    tile_end[g] = n_tile
-                    group_active, group_moved = settle_group(group_first, i + 1, i, first, last,
-                                                             particles, pairs, constants, scratch, finishing, dt,
-                                                             stats, status, store_reactions)
-                    active += group_active
-                    moved_too_far += group_moved
-                    acc = (own[g, 0], own[g, 1], own[g, 2], own[g, 3], own[g, 4], own[g, 5], own_count[g])
-                    group_first, n_tile, g = i, 0, 0
-                tile_entry[n_tile] = e
-                tile_row[n_tile] = row
-                tile[T_DX, n_tile], tile[T_DY, n_tile], tile[T_DZ, n_tile] = dx, dy, dz
-                tile[T_DISTANCE, n_tile], tile[T_OVERLAP, n_tile], tile[T_PREVIOUS, n_tile] = (
-                    distance, overlap, previous)
-                tile[T_RI, n_tile], tile[T_RJ, n_tile], tile[T_MI, n_tile], tile[T_MJ, n_tile] = ri, rj, mi, mass[j]
-                # the contact velocity reads v_i - v_j only (pair_contact_velocity)
-                tile[T_DV, n_tile], tile[T_DV + 1, n_tile], tile[T_DV + 2, n_tile] = (
-                    vi[0] - velocity[j, 0], vi[1] - velocity[j, 1], vi[2] - velocity[j, 2])
-                if SPIN:
-                    tile[T_WI, n_tile], tile[T_WI + 1, n_tile], tile[T_WI + 2, n_tile] = wi
-                    tile[T_WJ, n_tile], tile[T_WJ + 1, n_tile], tile[T_WJ + 2, n_tile] = (
-                        angular_velocity[j, 0], angular_velocity[j, 1], angular_velocity[j, 2])
-                for c in range(pair_history.shape[1]):
-                    tile_history[c, n_tile] = pair_history[e, c]
-                n_tile += 1
+        for k in range(n_touching):
+            e = non_negative(touching_entries[k])
+            j = non_negative(neighbours[e])
+            dx, dy, dz = px - position[j, 0], py - position[j, 1], pz - position[j, 2]
+            distance_squared = dx * dx + dy * dy + dz * dz
+            rj = radius[j]
+            reach = ri + rj
+            previous = pair_overlap[e]
+            distance = math.sqrt(distance_squared)
+            overlap = reach - distance
+            pair_overlap[e] = overlap
+            if TRACK:
+                note_transitions(stats, time, dt, overlap, previous)
+            row = pair_row[mat, material[j]]
+            lives_above = engaged_above(constants, row)
+            if overlap <= lives_above:
+                # touching by the squared distance, not by its root (the distance within
+                # a rounding of the contact's reach): apart, as the next step's first
+                # pass will find it, and ended as there. Evaluated, its overlap 0 would
+                # keep the history and a stored reaction's flag for good (the end test
+                # is previous > 0), a force on a partner finished by finish_kick_drift
+                if previous > lives_above:
+                    end_pair_contact(e, pair_history, reaction_slot, reaction, reaction_in_use)
+                continue
+            if distance == 0.0:
+                fault(status, TUNNELLED, i, j, PARTICLE)
+                break
+            if n_tile == TILE_CONTACTS:
+                # the tile is full: the particles before i are finished, i's contacts so
+                # far summed into its row of own, which moves to the front
+                own[g, 0], own[g, 1], own[g, 2], own[g, 3], own[g, 4], own[g, 5], own_count[g] = acc
+                tile_end[g] = n_tile
+                group_active, group_moved = settle_group(group_first, i + 1, i, first, last,
+                                                         particles, pairs, constants, scratch, finishing, dt,
+                                                         stats, status, store_reactions)
+                active += group_active
+                moved_too_far += group_moved
+                acc = (own[g, 0], own[g, 1], own[g, 2], own[g, 3], own[g, 4], own[g, 5], own_count[g])
+                group_first, n_tile, g = i, 0, 0
+            tile_entry[n_tile] = e
+            tile_row[n_tile] = row
+            tile[T_DX, n_tile], tile[T_DY, n_tile], tile[T_DZ, n_tile] = dx, dy, dz
+            tile[T_DISTANCE, n_tile], tile[T_OVERLAP, n_tile], tile[T_PREVIOUS, n_tile] = (
+                distance, overlap, previous)
+            tile[T_RI, n_tile], tile[T_RJ, n_tile], tile[T_MI, n_tile], tile[T_MJ, n_tile] = ri, rj, mi, mass[j]
+            # the contact velocity reads v_i - v_j only (pair_contact_velocity)
+            tile[T_DV, n_tile], tile[T_DV + 1, n_tile], tile[T_DV + 2, n_tile] = (
+                vi[0] - velocity[j, 0], vi[1] - velocity[j, 1], vi[2] - velocity[j, 2])
+            if SPIN:
+                tile[T_WI, n_tile], tile[T_WI + 1, n_tile], tile[T_WI + 2, n_tile] = wi
+                tile[T_WJ, n_tile], tile[T_WJ + 1, n_tile], tile[T_WJ + 2, n_tile] = (
+                    angular_velocity[j, 0], angular_velocity[j, 1], angular_velocity[j, 2])
+            for c in range(pair_history.shape[1]):
+                tile_history[c, n_tile] = pair_history[e, c]
+            n_tile += 1
         own[g, 0], own[g, 1], own[g, 2], own[g, 3], own[g, 4], own[g, 5], own_count[g] = acc
         tile_end[g] = n_tile
     return active, moved_too_far
