@@ -9,6 +9,7 @@ from minidem.geometry.neighbours import (
     NeighbourList,
     _cell_grid,
     _random_packing,
+    ROW_SCRATCH,
     build_pairs,
     max_displacement_exceeded,
 )
@@ -35,7 +36,7 @@ def assert_matches_brute_force(positions, radii, skin=SKIN):
     offsets, neighbours = build_pairs(positions, radii, skin)
     n = len(positions)
     assert offsets.shape == (n + 1,) and offsets[0] == 0
-    assert offsets.dtype == np.int64 and neighbours.dtype == np.int64
+    assert offsets.dtype == np.int64 and neighbours.dtype == np.int32
     assert len(neighbours) == offsets[-1]
     assert np.all(np.diff(offsets) >= 0)
     listed_i, listed_j = csr_to_pairs(offsets, neighbours)
@@ -73,7 +74,9 @@ def test_one_large_sphere_among_small_ones():
     radii[0] = 20 * radii.max()
     positions[0] = 0.0
     offsets, _ = assert_matches_brute_force(positions, radii)
-    assert offsets[1] > 50
+    # row 0 is longer than the build's scratch row: it is scanned a second time, straight
+    # into the list, while most rows beside it are copied from the scratch
+    assert offsets[1] > 50 > ROW_SCRATCH and (np.diff(offsets)[1:] <= ROW_SCRATCH).mean() > 0.5
 
 
 def test_zero_skin_lists_only_overlaps():
