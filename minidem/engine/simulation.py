@@ -462,6 +462,16 @@ def pair_index_type(n_entries: int, n_particles: int):
     return np.int32 if max(n_entries, n_particles) < 2**31 else np.int64
 
 
+def numpy_owned(array: np.ndarray) -> np.ndarray:
+    """``array`` (made by compiled code), copied into memory numpy allocates if it is 4 MiB
+    or more. numpy asks Linux for transparent huge pages for such arrays (madvise; the
+    usual setting allows them only where asked), numba's allocator does not: the force
+    pass reads the list's arrays every step, and at 1,000,000 spheres it ran about 5 %
+    faster with them on huge pages (docs/benchmarks.md, "Huge pages"). The copy costs
+    about 10 ms a list build there, and the compiled array is released at once."""
+    return np.array(array) if array.nbytes >= 1 << 22 else array
+
+
 def pair_arrays(offsets, partners, history, overlap, slot, reverse_offsets):
     """The kernel's pair tuple for a new list (``State.pairs``): its reactions zero and no
     pair touching yet. The reactions are in the transposed list's order (row ``slot[e]``
@@ -1000,7 +1010,8 @@ class Simulation:
             old_first_partner, state.first_partner = state.first_partner, None
             try:
                 offsets, found = neighbours.build_pairs(state.position, radius, self.skin + self.max_reach)
-                found = found.astype(pair_index_type(found.shape[0], len(radius)), copy=False)
+                offsets = numpy_owned(offsets)
+                found = numpy_owned(found.astype(pair_index_type(found.shape[0], len(radius)), copy=False))
                 # zeros from the operating system: rows no contact is carried into stay
                 # unwritten (not resident) until a contact starts there
                 history = np.zeros((found.shape[0], old[2].shape[1]))
@@ -1023,7 +1034,8 @@ class Simulation:
                     first = np.repeat(np.arange(start, stop), np.diff(offsets[start:stop + 1]))
                     overlap[entries] = radius[first] + radius[found[entries]] - np.linalg.norm(
                         state.position[first] - state.position[found[entries]], axis=1)
-            reverse_offsets, slot, state.first_partner = neighbours.reverse_index(offsets, found, len(radius))
+            reverse_offsets, slot, state.first_partner = map(numpy_owned,
+                                                             neighbours.reverse_index(offsets, found, len(radius)))
             state.pairs = pair_arrays(offsets, found, history, overlap, slot, reverse_offsets)
         if state.meshes[0].shape[0]:
             triangles, triangle_material, old_offsets, old_found, old_history, old_overlap = state.meshes
