@@ -516,7 +516,8 @@ def mesh_candidates(positions, radii, skin, triangles):
         for axis in range(3):
             lower[t, axis] = min(triangles[t, 0, axis], triangles[t, 1, axis], triangles[t, 2, axis])
             upper[t, axis] = max(triangles[t, 0, axis], triangles[t, 1, axis], triangles[t, 2, axis])
-    # pass 1 counts, pass 2 fills at prefix-sum offsets (as in build_pairs)
+    # pass 1 counts, pass 2 fills at prefix-sum offsets (few triangles: the scan is cheap
+    # enough to run twice, unlike build_pairs' cell scans)
     no_output = np.empty(0, dtype=np.int64)
     counts = np.zeros(n_particles, dtype=np.int64)
     for p in numba.prange(n_particles):
