@@ -27,9 +27,10 @@ from minidem.geometry.primitives import triangle_closest_point
 MAX_CELLS_PER_PARTICLE = 8
 
 # Neighbours of a particle kept from the list build's one scan (int32 each, 4 bytes a
-# particle apiece while the list is built); a longer row is scanned again. A settled pile
-# of equal spheres has 4.4 a particle on average (half list: j > i), a falling column 3.
-ROW_SCRATCH = 8
+# particle apiece while the list is built, at the peak of a large run's memory); a longer
+# row is scanned again. A falling column of equal spheres has 3 a particle (half list:
+# j > i), a settled pile 4.4 on average.
+ROW_SCRATCH = 4
 
 # Relative margin on the cell size so that rounding in the binning can never place two
 # particles closer than the cutoff more than one cell apart.
@@ -95,7 +96,8 @@ def _bin_particles(positions, lower, cells_per_axis, inverse_cell_width):
     """
     n_particles = positions.shape[0]
     nx, ny, nz = cells_per_axis[0], cells_per_axis[1], cells_per_axis[2]
-    cell_of_particle = np.empty(n_particles, dtype=np.int64)
+    # int32, as particles_by_cell: build_pairs caps the cells below 2**31
+    cell_of_particle = np.empty(n_particles, dtype=np.int32)
     for p in numba.prange(n_particles):
         # Clamp: the particle on the upper bounding face floors to index n.
         cx = min(np.int64((positions[p, 0] - lower[0]) * inverse_cell_width[0]), nx - 1)
@@ -191,7 +193,7 @@ def build_pairs(positions, radii, skin):
     if n_particles > 0 and cell_size <= 0.0:
         raise ValueError("neighbour search: 2 * max(radii) + skin must be > 0")
 
-    max_cells = max(MAX_CELLS_PER_PARTICLE * n_particles, 1)
+    max_cells = min(max(MAX_CELLS_PER_PARTICLE * n_particles, 1), 2**31 - 1)
     lower, cells_per_axis, inverse_cell_width = _cell_grid(positions, cell_size, max_cells)
     cell_of_particle, cell_start, particles_by_cell = _bin_particles(
         positions, lower, cells_per_axis, inverse_cell_width)
