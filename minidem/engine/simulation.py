@@ -466,9 +466,10 @@ def numpy_owned(array: np.ndarray) -> np.ndarray:
     """``array`` (made by compiled code), copied into memory numpy allocates if it is 4 MiB
     or more. numpy asks Linux for transparent huge pages for such arrays (madvise; the
     usual setting allows them only where asked), numba's allocator does not: the force
-    pass reads the list's arrays every step, and at 1,000,000 spheres it ran about 5 %
-    faster with them on huge pages (docs/benchmarks.md, "Huge pages"). The copy costs
-    about 10 ms a list build there, and the compiled array is released at once."""
+    pass reads the list's arrays every step, and at 1,000,000 spheres it ran 6 % slower
+    with them on small pages (docs/benchmarks.md, "The list build: one scan, and huge
+    pages"). The copy costs about 10 ms a list build there, and the compiled array is
+    released at once."""
     return np.array(array) if array.nbytes >= 1 << 22 else array
 
 
