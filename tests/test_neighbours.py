@@ -69,6 +69,19 @@ def test_random_polydisperse(seed):
     assert offsets[-1] > 500  # the packing is dense enough to exercise the search
 
 
+def test_equal_radii():
+    # Equal radii are stored once (build_pairs' radius_index_mask): the same pairs as the
+    # brute force, and as the general path, taken when one radius differs by one ulp.
+    positions, radii = polydisperse_packing(1000, seed=12, size_ratio=1.0, volume_fraction=0.4)
+    assert np.all(radii == radii[0])
+    offsets, neighbours = assert_matches_brute_force(positions, radii)
+    assert offsets[-1] > 1000
+    nudged = radii.copy()
+    nudged[-1] = np.nextafter(nudged[-1], 1.0)
+    offsets_general, neighbours_general = build_pairs(positions, nudged, SKIN)
+    assert np.array_equal(offsets, offsets_general) and np.array_equal(neighbours, neighbours_general)
+
+
 def test_one_large_sphere_among_small_ones():
     positions, radii = polydisperse_packing(800, seed=7, size_ratio=2.0)
     radii[0] = 20 * radii.max()

@@ -53,17 +53,27 @@ def test_cached_first_partners_follow_the_list_through_rebuilds_and_restores():
     scene = scenario.load_scene("scenarios/bench/settle.toml", PILE + ["run.end_time=0.03"])
     sim = simulation.Simulation(scene)
     early = {}
-    sim.run(progress=lambda steps, total, contacts: early.setdefault("copy", sim.state.capture())
-            if sim.state.builds == 1 and steps > 0 else None)
+    def keep_early(steps, total, contacts):
+        if sim.state.builds == 1 and steps > 0 and "copy" not in early:
+            early["copy"], early["list"] = sim.state.capture(), [a.copy() for a in sim.state.pairs[:2]]
+
+    sim.run(progress=keep_early)
     state, n = sim.state, scene.n_particles
     assert state.builds >= 3 and state.count_contacts() > 50
     offsets, partners = state.pairs[:2]
     assert np.array_equal(state.first_partner, first_partners_by_definition(offsets, partners, n))
     later_list = partners.copy()
+    # a capture holds no list (State._LISTS): the one of its position at build is made
+    # again for a file, and by a restore; it must be the list the state had then
+    assert "pair_neighbours" not in early["copy"]
+    made = state.lists_of(early["copy"])
+    assert np.array_equal(made["pair_offsets"], early["list"][0])
+    assert np.array_equal(made["pair_neighbours"], early["list"][1])
     state.first_partner[:] = -7  # a restore must not keep the live ones: they are recomputed
     state.restore(early["copy"])
     offsets, partners = state.pairs[:2]
     assert not np.array_equal(partners, later_list)  # another list
+    assert np.array_equal(offsets, early["list"][0]) and np.array_equal(partners, early["list"][1])
     assert np.array_equal(state.first_partner, first_partners_by_definition(offsets, partners, n))
 
 
@@ -171,11 +181,15 @@ def test_guard_survey_by_blocks_is_the_same_on_any_thread_count_and_agrees_with_
         assert blowup.survey(*arrays)[0] == blowup.survey_threads(*arrays)[0] == first
 
 
-def test_near_planes_are_those_within_radius_plus_margin():
+@pytest.mark.parametrize("block", [None, 777])
+def test_near_planes_are_those_within_radius_plus_margin(block, monkeypatch):
     # Definition: plane w is listed for sphere i when (x_i - p_w) . n_w < r_i + margin,
     # ascending w per sphere (CSR). Axis-aligned planes (a box: the zero components of the
     # normal are skipped) and tilted ones, spheres on both sides and a few exactly at the
-    # limit (not listed: strictly closer).
+    # limit (not listed: strictly closer). Spheres are taken a block at a time: also with
+    # blocks that do not divide the count.
+    if block is not None:
+        monkeypatch.setattr(neighbours, "_PLANE_BLOCK", block)
     rng = np.random.default_rng(5)
     n, margin = 5000, 0.5e-3
     positions = rng.uniform(-0.01, 0.11, (n, 3))
@@ -191,6 +205,8 @@ def test_near_planes_are_those_within_radius_plus_margin():
     assert np.array_equal(offsets, np.concatenate([[0], np.cumsum(near.sum(axis=1))]))
     assert np.array_equal(planes, np.nonzero(near)[1])
     assert 0 < near.any(axis=1).sum() < n and not near[:10, 2].any()
+    # each entry's sphere, by definition
+    assert np.array_equal(neighbours.rows_of_entries(offsets), np.repeat(np.arange(n), np.diff(offsets)))
     # no margin: every plane for every sphere
     offsets, planes = neighbours.near_planes(positions, radii, points, normals, None)
     assert np.array_equal(offsets, 7 * np.arange(n + 1)) and np.array_equal(planes, np.tile(np.arange(7), n))

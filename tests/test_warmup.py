@@ -22,7 +22,7 @@ blowup.Guard(sim).check(state, 0.0, 0.0)
 state.kinetic_energy(scene.inertia)
 print(json.dumps({name: [sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values())]
                   for name, f in (("build_pairs", neighbours.build_pairs), ("carry_history", neighbours.carry_history),
-                                  ("reverse_index", neighbours.reverse_index), ("survey", blowup.survey),
+                                  ("reverse_index", neighbours.fill_reverse_index), ("survey", blowup.survey),
                                   ("kinetic_energy", integrate.kinetic_energy))}))
 """
 

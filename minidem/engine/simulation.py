@@ -374,11 +374,13 @@ _STATE_TUPLES = {
 # in use (State.capture)
 _SPARSE_ROWS = ("plane_history", "cylinder_history", "mesh_history", "pair_history", "pair_reaction",
                 "pair_reaction_in_use")
-# arrays nothing writes into once made (the neighbour lists, replaced whole at a rebuild,
-# and the positions at the last build, likewise): a capture holds them themselves, not a
-# copy (44 bytes a particle of the settle scene's last good state), until a rebuild
-# replaces them in the state
-_SHARED = ("position_at_build", "pair_offsets", "pair_neighbours", "mesh_offsets", "mesh_candidates")
+# The Verlet lists follow from the position at the last build (State.build_lists: the
+# same lists, bit for bit), so a capture does not hold them and State.restore makes them
+# again. Held, the old lists stayed resident from a rebuild to the next copy of the state,
+# and at the rebuild itself beside the old and the new list: 20 bytes a particle of the
+# settle scene at 1,000,000 (docs/benchmarks.md, "Memory per particle"). Files hold them
+# (Run.write_state): a script reading pair_history needs its pairs.
+_LISTS = ("pair_offsets", "pair_neighbours", "mesh_offsets", "mesh_candidates")
 _SPARSE_PARTS = ("@rows", "@values", "@shape")
 _SPARSE_BLOCK = 1 << 16  # rows scanned at a time
 
@@ -518,6 +520,8 @@ class State:
         self.plane_margin = sim.skin + sim.max_reach if sim.parallel and (sim.pairs or walls.triangles.shape[0]) \
             else None
         self.history_size = h
+        # what the Verlet lists are built with (build_lists)
+        self.has_pairs, self.pair_cutoff, self.mesh_skin = sim.pairs, sim.skin + sim.max_reach, sim.skin
         self.planes = (scene.wall_point, scene.wall_normal, scene.wall_material)
         self.position_at_build = self.position.copy()
         self.list_near_planes()
@@ -565,6 +569,34 @@ class State:
             neighbours.carry_history(*self.planes[5:], *self.planes[3:5], offsets, planes, history, overlap)
         self.planes = (wall_point, wall_normal, wall_material, history, overlap, offsets, planes)
 
+    def build_lists(self, position: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The Verlet lists at ``position`` (default position_at_build), by their names in a
+        capture (_LISTS): the pairs closer than their radii plus ``pair_cutoff`` (partners
+        int32 below 2**31 entries, ``pair_index_type``) and the mesh triangles within
+        ``mesh_skin``. What :meth:`Simulation.rebuild` makes, and :meth:`restore` makes
+        again, bit for bit."""
+        radius, n = self.particles[8], self.position.shape[0]
+        position = self.position_at_build if position is None else position
+        lists = {"pair_offsets": np.zeros(n + 1, dtype=np.int64),
+                 "pair_neighbours": np.zeros(0, dtype=pair_index_type(0, n)),
+                 "mesh_offsets": np.zeros(n + 1, dtype=np.int64), "mesh_candidates": np.zeros(0, dtype=np.int64)}
+        if self.has_pairs:
+            offsets, found = neighbours.build_pairs(position, radius, self.pair_cutoff)
+            lists["pair_offsets"] = numpy_owned(offsets)
+            lists["pair_neighbours"] = numpy_owned(found.astype(pair_index_type(found.shape[0], n), copy=False))
+        if self.meshes[0].shape[0]:
+            lists["mesh_offsets"], lists["mesh_candidates"] = neighbours.mesh_candidates(
+                position, radius, self.mesh_skin, self.meshes[0])
+        return lists
+
+    def lists_of(self, arrays: dict) -> dict[str, np.ndarray]:
+        """The Verlet lists of a capture (which holds none, _LISTS): the live ones if it
+        was taken since the last list build (it holds the live position at build), else
+        made from its position at build."""
+        if np.array_equal(arrays["position_at_build"], self.position_at_build):
+            return {name: array for name, array in self.live_arrays().items() if name in _LISTS}
+        return self.build_lists(arrays["position_at_build"])
+
     def near_plane_list(self) -> tuple[np.ndarray, np.ndarray]:
         """(offsets, planes): the planes near each sphere at position_at_build, CSR."""
         radius = self.particles[8]  # the particle tuple's radius (kernel order)
@@ -574,7 +606,7 @@ class State:
     def plane_overlaps(self, offsets, planes) -> np.ndarray:
         """The overlap R - (x - p) . n of each near-plane entry's sphere with its plane, now."""
         wall_point, wall_normal = self.planes[:2]
-        sphere = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+        sphere = neighbours.rows_of_entries(offsets)
         return self.particles[8][sphere] - np.einsum("ek,ek->e", self.position[sphere] - wall_point[planes],
                                                      wall_normal[planes])
 
@@ -582,7 +614,7 @@ class State:
         """(sphere, plane) of every near-plane entry, aligned with the plane histories and
         overlaps (planes[3], planes[4])."""
         offsets, planes = self.planes[5:7]
-        return np.repeat(np.arange(len(offsets) - 1), np.diff(offsets)), planes
+        return neighbours.rows_of_entries(offsets), planes
 
     def contact_pairs(self):
         """(pairs (M, 2) particle indices, normal force (M,) N) of touching particle pairs."""
@@ -596,9 +628,10 @@ class State:
 
     # -- checkpoints -------------------------------------------------------------
     def capture(self, into: dict | None = None) -> dict[str, np.ndarray]:
-        """Copies of every array the kernel carries from one step to the next (the
-        contact lists and histories exactly as they are, so no rebuild is needed to go on);
-        of those nothing writes into once made (``_SHARED``), the arrays themselves.
+        """Copies of every array the kernel carries from one step to the next (the contact
+        histories exactly as they are, rows aligned with the lists at the position at
+        build); the Verlet lists not at all (``_LISTS``: :meth:`restore` makes them
+        again from the position at build, :meth:`lists_of` for a file).
 
         ``into``: an earlier capture, overwritten in place and returned: its arrays are
         reused where their shapes still fit (a copy into existing memory is ten times
@@ -618,9 +651,8 @@ class State:
         arrays = {} if into is None else into
         for name, array in live.items():
             target = arrays.pop(name, None)
-            if name in _SHARED:
+            if name in _LISTS:
                 del target
-                arrays[name] = array
             elif name in _SPARSE_ROWS:
                 del target
                 for part in _SPARSE_PARTS:
@@ -648,16 +680,23 @@ class State:
 
     def restore(self, arrays: dict) -> None:
         for name in _STATE_ARRAYS:  # in place: the kernel's particle tuple holds these arrays
-            if name in _SHARED:  # a capture may hold this very array: a copy of its own
-                setattr(self, name, np.array(arrays[name], dtype=np.float64, order="C"))
-            else:
-                getattr(self, name)[...] = arrays[name]
+            getattr(self, name)[...] = arrays[name]
+        # a capture holds no lists (_LISTS): those of the restored position at build, again
+        lists = {} if all(name in arrays for name in _LISTS) else self.build_lists()
         for group, names in _STATE_TUPLES.items():
             items = list(getattr(self, group))
             for k, name in enumerate(names):
-                if name is not None:  # replaced: list rebuilds change the lengths
+                if name in lists:
+                    items[k] = lists[name]
+                elif name is not None:  # replaced: list rebuilds change the lengths
                     items[k] = np.array(_full_array(arrays, name), dtype=items[k].dtype, order="C")
             setattr(self, group, tuple(items))
+        for group, what in (("pairs", "pair"), ("meshes", "mesh")):
+            listed, histories = getattr(self, group)[1].shape[0], getattr(self, group)[2 if group == "pairs" else 4]
+            if histories.shape[0] != listed:
+                raise MinidemError(f"the saved {what} contacts ({histories.shape[0]} entries) do not match the "
+                                   f"Verlet list at the saved last list build ({listed}): the state was not "
+                                   "written by this version of minidem for this scene")
         offsets, partners = self.pairs[:2]
         if partners.shape[0]:
             reverse_offsets, slot, self.first_partner = neighbours.reverse_index(offsets, partners, len(offsets) - 1)
@@ -1000,6 +1039,7 @@ class Simulation:
     def rebuild(self, state: State) -> None:
         """New Verlet lists at the current positions; every contact keeps its history."""
         radius = self.scene.radius
+        lists = None
         if self.pairs:
             old = state.pairs[:4]  # offsets, partners, history, overlap
             # The old list is referenced by ``old`` alone from here, and released once its
@@ -1007,12 +1047,12 @@ class Simulation:
             # allocated: at its peak a rebuild holds the old list and the new one with its
             # histories, not two whole sets of pair arrays.
             state.pairs = None
-            # likewise the old list's first partners (8 bytes a particle), recomputed with the new list
-            old_first_partner, state.first_partner = state.first_partner, None
+            # likewise the old list's first partners (8 bytes a particle), recomputed with the
+            # new list; a failure leaves none (State.restore recomputes them with the lists)
+            state.first_partner = None
             try:
-                offsets, found = neighbours.build_pairs(state.position, radius, self.skin + self.max_reach)
-                offsets = numpy_owned(offsets)
-                found = numpy_owned(found.astype(pair_index_type(found.shape[0], len(radius)), copy=False))
+                lists = state.build_lists(state.position)  # the position at build from here on
+                offsets, found = lists["pair_offsets"], lists["pair_neighbours"]
                 # zeros from the operating system: rows no contact is carried into stay
                 # unwritten (not resident) until a contact starts there
                 history = np.zeros((found.shape[0], old[2].shape[1]))
@@ -1021,9 +1061,8 @@ class Simulation:
                 neighbours.carry_history(*old, offsets, found, history, overlap)
             except BaseException:
                 state.pairs = old + (None, None, None, None)  # as before the call (a failure restores from it)
-                state.first_partner = old_first_partner
                 raise
-            del old, old_first_partner
+            del old
             if state.builds == 0:
                 # t = 0: spheres may start touching; their overlap is the 'previous' one.
                 # A few rows at a time: whole-list temporaries (three (M, 3) arrays) were
@@ -1035,19 +1074,20 @@ class Simulation:
                     first = np.repeat(np.arange(start, stop), np.diff(offsets[start:stop + 1]))
                     overlap[entries] = radius[first] + radius[found[entries]] - np.linalg.norm(
                         state.position[first] - state.position[found[entries]], axis=1)
-            reverse_offsets, slot, state.first_partner = map(numpy_owned,
-                                                             neighbours.reverse_index(offsets, found, len(radius)))
+            reverse_offsets, slot, state.first_partner = neighbours.reverse_index(offsets, found, len(radius))
             state.pairs = pair_arrays(offsets, found, history, overlap, slot, reverse_offsets)
         if state.meshes[0].shape[0]:
             triangles, triangle_material, old_offsets, old_found, old_history, old_overlap = state.meshes
-            offsets, found = neighbours.mesh_candidates(state.position, radius, self.skin, triangles)
+            lists = lists or state.build_lists(state.position)
+            offsets, found = lists["mesh_offsets"], lists["mesh_candidates"]
             history = np.zeros((found.shape[0], old_history.shape[1]))
             overlap = np.full(found.shape[0], -1.0)
             neighbours.carry_history(old_offsets, old_found, old_history, old_overlap, offsets, found, history,
                                      overlap)
             state.meshes = (triangles, triangle_material, offsets, found, history, overlap)
-        # a new array, not written in place: the last good state may hold the old one (_SHARED)
-        state.position_at_build = state.position.copy()
+        # in place: a new array beside the old one, which the last good state held, was 24
+        # bytes a particle more at the peak of a large run's rebuild
+        np.copyto(state.position_at_build, state.position)
         state.list_near_planes()
         state.builds += 1
         release_free_memory()
@@ -1347,6 +1387,8 @@ class _RunLoop:
     def write_state(self, name, snap, kind):
         sim = self.sim
         arrays = full_arrays(snap["arrays"])  # the files hold every row
+        if not all(listed in arrays for listed in _LISTS):  # and the lists (a capture holds none)
+            arrays.update(self.state.lists_of(snap["arrays"]))
         arrays["probe"], arrays["stats"], arrays["status"] = snap["tracking"]
         arrays["energy"] = np.array(self.energy[:snap["energy"]], dtype=np.float64).reshape(-1, 2)
         arrays["trace"] = np.concatenate(self.trace_chunks[:snap["trace"]]) if snap["trace"] else self.no_trace

@@ -70,7 +70,7 @@ def _dispatchers(pairs: bool, meshes: bool) -> dict:
     found = {"survey": blowup.survey, "kinetic_energy": integrate.kinetic_energy}
     if pairs:
         found.update(build_pairs=neighbours.build_pairs, carry_history=neighbours.carry_history,
-                     reverse_index=neighbours.reverse_index)
+                     reverse_index=neighbours.fill_reverse_index)
     if meshes:
         found.update(mesh_candidates=neighbours.mesh_candidates, carry_history=neighbours.carry_history)
     return found

@@ -126,10 +126,11 @@ def _bin_particles(positions, lower, cells_per_axis, inverse_cell_width):
 
 @numba.njit(cache=True)
 def _scan_neighbourhood(i, cell, cells_per_axis, cell_start, particles_by_cell,
-                        sorted_positions, sorted_radii, radius_i, position_i, skin, out):
+                        sorted_positions, sorted_radii, radius_index_mask, radius_i, position_i, skin, out):
     """Count the neighbours j > i of particle i found in the up to 27 cells around
     ``cell``, and store them in ``out`` in scan order: all of them if they fit, else the
-    first ``len(out) - 1`` (those past them are written over its last slot)."""
+    first ``len(out) - 1`` (those past them are written over its last slot). The radius
+    of the particle at cell-order position k is ``sorted_radii[k & radius_index_mask]``."""
     nx, ny, nz = cells_per_axis[0], cells_per_axis[1], cells_per_axis[2]
     last = out.shape[0] - 1
     cz = cell % nz
@@ -150,7 +151,7 @@ def _scan_neighbourhood(i, cell, cells_per_axis, cell_start, particles_by_cell,
                 dx = sorted_positions[k, 0] - position_i[0]
                 dy = sorted_positions[k, 1] - position_i[1]
                 dz = sorted_positions[k, 2] - position_i[2]
-                cutoff = radius_i + sorted_radii[k] + skin
+                cutoff = radius_i + sorted_radii[k & radius_index_mask] + skin
                 # One combined, rarely true test instead of an early `j <= i` skip:
                 # index order is random within a cell, so that branch would be
                 # mispredicted about half the time, costing more than the distance.
@@ -201,14 +202,23 @@ def build_pairs(positions, radii, skin):
     # Cell-ordered copies: the inner loop then streams through contiguous memory, and
     # the outer loop walks particles in cell order so neighbouring iterations share
     # cache lines whatever the input ordering.
+    # Equal radii (a monodisperse packing) are one value, read at index k & 0 = 0: 8 bytes a
+    # particle less at the build, the peak of a large run's memory; else k & -1 = k.
+    equal_radii = True
+    for p in range(n_particles):
+        equal_radii &= radii[p] == radii[0]
+    radius_index_mask = 0 if equal_radii else -1
     sorted_positions = np.empty((n_particles, 3))
-    sorted_radii = np.empty(n_particles)
+    sorted_radii = np.empty(1 if equal_radii else n_particles)
+    if equal_radii and n_particles > 0:
+        sorted_radii[0] = radii[0]
     for k in numba.prange(n_particles):
         p = particles_by_cell[k]
         sorted_positions[k, 0] = positions[p, 0]
         sorted_positions[k, 1] = positions[p, 1]
         sorted_positions[k, 2] = positions[p, 2]
-        sorted_radii[k] = radii[p]
+        if not equal_radii:
+            sorted_radii[k] = radii[p]
 
     # One scan: each row's count goes straight into the offsets (summed in place after),
     # and its first ROW_SCRATCH neighbours into a scratch row, from which the list is
@@ -220,7 +230,7 @@ def build_pairs(positions, radii, skin):
         i = particles_by_cell[k]
         offsets[i + 1] = _scan_neighbourhood(
             i, cell_of_particle[i], cells_per_axis, cell_start, particles_by_cell,
-            sorted_positions, sorted_radii, sorted_radii[k], sorted_positions[k],
+            sorted_positions, sorted_radii, radius_index_mask, sorted_radii[k & radius_index_mask], sorted_positions[k],
             skin, scratch[k])
     for i in range(n_particles):
         offsets[i + 1] += offsets[i]
@@ -236,7 +246,7 @@ def build_pairs(positions, radii, skin):
         else:
             _scan_neighbourhood(
                 i, cell_of_particle[i], cells_per_axis, cell_start, particles_by_cell,
-                sorted_positions, sorted_radii, sorted_radii[k], sorted_positions[k],
+                sorted_positions, sorted_radii, radius_index_mask, sorted_radii[k & radius_index_mask], sorted_positions[k],
                 skin, row)
         # Ascending j makes the list canonical (independent of the grid, which moves
         # with the bounding box) and gives the contact loop increasing memory access.
@@ -389,7 +399,6 @@ def carry_history(old_offsets, old_keys, old_history, old_overlap, new_offsets, 
                 overlap[b] = old_overlap[a]
 
 
-@numba.njit(cache=True)
 def reverse_index(offsets, neighbours, n_particles):
     """The transposed half list: for each particle p the entries (i, p) naming it as the
     partner, in ascending i (a counting sort, O(N + M)).
@@ -403,25 +412,44 @@ def reverse_index(offsets, neighbours, n_particles):
     lists p (p itself if none): the kernel's thread blocks need it
     (``minidem.engine.blocks``), and it changes only with the list, so it is found here,
     in the pass that visits the entries in ascending i anyway.
+
+    The arrays are numpy's, filled by compiled code (``fill_reverse_index``): numpy asks
+    for transparent huge pages for arrays of 4 MiB and more, which the force pass reads
+    every step (``minidem.engine.simulation.numpy_owned``), and no copy of them is made at
+    a list rebuild, the peak of a large run's memory.
     """
     reverse_offsets = np.zeros(n_particles + 1, dtype=np.int64)
+    # the partners' integer type (int32 in the engine's lists): a slot is below the
+    # number of entries, which the engine keeps in that type's range
+    slot = np.empty(neighbours.shape[0], dtype=neighbours.dtype)
+    first_partner = np.arange(n_particles, dtype=np.int64)
+    fill_reverse_index(offsets, neighbours, reverse_offsets, slot, first_partner)
+    return reverse_offsets, slot, first_partner
+
+
+@numba.njit(cache=True)
+def fill_reverse_index(offsets, neighbours, reverse_offsets, slot, first_partner):
+    """``reverse_index`` into its arrays: reverse_offsets zero, first_partner[p] = p."""
+    n_particles = reverse_offsets.shape[0] - 1
     for e in range(neighbours.shape[0]):
         reverse_offsets[neighbours[e] + 1] += 1
     for p in range(n_particles):
         reverse_offsets[p + 1] += reverse_offsets[p]
-    next_slot = reverse_offsets[:-1].copy()
-    first_partner = np.arange(n_particles)
-    # the partners' integer type (int32 in the engine's lists): a slot is below the
-    # number of entries, which the engine keeps in that type's range
-    slot = np.empty(neighbours.shape[0], dtype=neighbours.dtype)
+    # each particle's next free position, counted up in place from its start (no array of
+    # its own: 8 bytes a particle less at a rebuild), and shifted back to the starts after
     for i in range(n_particles):
         for e in range(offsets[i], offsets[i + 1]):
             j = neighbours[e]
-            if next_slot[j] == reverse_offsets[j]:  # j's first entry: i is the smallest row listing j
+            if first_partner[j] == j:  # j's first entry (a row i lists only j > i): i is the smallest
                 first_partner[j] = i
-            slot[e] = next_slot[j]
-            next_slot[j] += 1
-    return reverse_offsets, slot, first_partner
+            slot[e] = reverse_offsets[j]
+            reverse_offsets[j] += 1
+    for p in range(n_particles, 0, -1):
+        reverse_offsets[p] = reverse_offsets[p - 1]
+    reverse_offsets[0] = 0
+
+
+_PLANE_BLOCK = 1 << 16  # spheres near_planes takes at a time
 
 
 def near_planes(positions, radii, wall_point, wall_normal, margin):
@@ -442,35 +470,50 @@ def near_planes(positions, radii, wall_point, wall_normal, margin):
     if margin is None:
         return (np.arange(n + 1, dtype=np.int64) * n_planes,
                 np.tile(np.arange(n_planes, dtype=np.int32), n))
-    reach = radii + margin
-    near = []  # per plane: which spheres are near it
-    counts = np.zeros(n, dtype=np.int64)
-    for w in range(n_planes):
-        # distance of the centre from the plane, one column of positions at a time (no
-        # (N, 3) temporary), the normal's zero components skipped (a box's planes are
-        # axis-aligned: a third of the work); a product of zero would add only a signed
-        # zero, which changes no comparison
-        distance = None
-        for k in range(3):
-            if wall_normal[w, k] != 0.0:
-                term = positions[:, k] - wall_point[w, k]
-                term *= wall_normal[w, k]
-                if distance is None:
-                    distance = term
-                else:
-                    distance += term
-        near.append(distance < reach)
-        counts += near[-1]
     offsets = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(counts, out=offsets[1:])
-    # the planes of the spheres near any (a few per cent of a large pile) from those rows
-    # alone: numpy's sum and nonzero along the short axis of a whole (N, planes) array
-    # were 30 of the 55 ms at N = 1,000,000 (now 17 ms in all, a list build's serial part)
-    rows = np.flatnonzero(counts)
-    listed = np.empty((rows.shape[0], n_planes), dtype=bool)
-    for w in range(n_planes):
-        listed[:, w] = near[w][rows]
-    return offsets, np.nonzero(listed)[1].astype(np.int32)
+    planes = []
+    # a block of spheres at a time: whole-column temporaries (the reach, each plane's
+    # distances and flags, the counts: 37 bytes a sphere) were the peak of a large run's
+    # list rebuild, which holds the old and the new pair list then (docs/benchmarks.md)
+    for start in range(0, n, _PLANE_BLOCK):
+        stop = min(start + _PLANE_BLOCK, n)
+        reach = radii[start:stop] + margin
+        near = []  # per plane: which spheres of the block are near it
+        counts = np.zeros(stop - start, dtype=np.int64)
+        for w in range(n_planes):
+            # distance of the centre from the plane, one column of positions at a time (no
+            # (N, 3) temporary), the normal's zero components skipped (a box's planes are
+            # axis-aligned: a third of the work); a product of zero would add only a signed
+            # zero, which changes no comparison
+            distance = None
+            for k in range(3):
+                if wall_normal[w, k] != 0.0:
+                    term = positions[start:stop, k] - wall_point[w, k]
+                    term *= wall_normal[w, k]
+                    if distance is None:
+                        distance = term
+                    else:
+                        distance += term
+            near.append(distance < reach)
+            counts += near[-1]
+        np.cumsum(counts, out=offsets[start + 1:stop + 1])
+        offsets[start + 1:stop + 1] += offsets[start]
+        # the planes of the spheres near any (a few per cent of a large pile) from those
+        # rows alone: numpy's sum and nonzero along the short axis of a whole (N, planes)
+        # array were 30 of the 55 ms at N = 1,000,000 (17 ms in all after)
+        rows = np.flatnonzero(counts)
+        listed = np.empty((rows.shape[0], n_planes), dtype=bool)
+        for w in range(n_planes):
+            listed[:, w] = near[w][rows]
+        planes.append(np.nonzero(listed)[1].astype(np.int32))
+    return offsets, np.concatenate(planes) if planes else np.zeros(0, dtype=np.int32)
+
+
+def rows_of_entries(offsets):
+    """The row of each entry of a CSR list (offsets (N + 1,)), without a temporary of N
+    (np.repeat of np.diff): a binary search per entry, for the short lists (the planes
+    near each sphere) a large run makes at every list build."""
+    return np.searchsorted(offsets, np.arange(offsets[-1]), side="right") - 1
 
 
 @numba.njit(cache=True)
