@@ -521,13 +521,18 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     pair_row, constants = law
     wall_point, wall_normal, wall_material, wall_history, wall_overlap, near_offsets, near_planes = planes
-    base, axis, cylinder_radius, length, cylinder_material, cylinder_history, cylinder_overlap_prev = cylinders
-    triangles, triangle_material, mesh_offsets, mesh_candidates, mesh_history, mesh_overlap = meshes
-    (offsets, neighbours, pair_history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use,
-     reaction_pending) = pairs
+    # a kind of contact the scene does not have comes as an empty tuple (see advance), unpacked
+    # only under its flag
+    if CYLINDERS:
+        base, axis, cylinder_radius, length, cylinder_material, cylinder_history, cylinder_overlap_prev = cylinders
+    if MESHES:
+        triangles, triangle_material, mesh_offsets, mesh_candidates, mesh_history, mesh_overlap = meshes
     probe_wall, probe, stats, status = tracking
-    longest_row = 0
+    longest_row, history_width = 0, 0
     if PAIRS:
+        (offsets, neighbours, pair_history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use,
+         reaction_pending) = pairs
+        history_width = pair_history.shape[1]
         for i in range(first, last):
             longest_row = max(longest_row, offsets[i + 1] - offsets[i])
     # Pair contacts are evaluated a tile at a time (evaluate_pair_tile: vector code): the
@@ -542,7 +547,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
     # the group (free fall, 200,000 spheres: 3.0 -> 2.7 s of kernel CPU, docs/benchmarks.md)
     touching_entries = np.empty(longest_row, dtype=np.int64)
     tile = np.empty((TILE_INPUTS, TILE_CONTACTS if PAIRS else 0))
-    tile_history = np.empty((pair_history.shape[1], TILE_CONTACTS if PAIRS else 0))
+    tile_history = np.empty((history_width, TILE_CONTACTS if PAIRS else 0))
     response = np.empty((TILE_RESPONSES, TILE_CONTACTS if PAIRS else 0))
     tile_entry = np.empty(TILE_CONTACTS if PAIRS else 0, dtype=np.int64)
     tile_row = np.empty(TILE_CONTACTS if PAIRS else 0, dtype=np.int64)
@@ -839,8 +844,9 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
     particle finish_kick_drift finishes) are zeroed for the next force pass instead."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     sampling, inertia, particle_energy = energy_step
-    (offsets, neighbours, history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use,
-     reaction_pending) = pairs
+    if PAIRS:  # else an empty tuple (see advance)
+        (offsets, neighbours, history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use,
+         reaction_pending) = pairs
     moved_too_far = 0
     for p in range(first, last):
         if p < 0:  # never (non_negative)
@@ -1036,6 +1042,9 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
     (``minidem.engine.blocks.blocks``, for ``threads`` threads; one block, all particles,
     for a serial kernel): chosen outside the kernel, which therefore does not compile
     them anew for every law and scene shape.
+    ``cylinders``, ``meshes``, ``pairs``: an empty tuple when the kernel's flag is off
+    (``Simulation.arguments``): each array of a tuple argument is unboxed, typed and
+    lowered in a first compile, whether used or not.
     Times are start_time + k dt, not a running sum, so long runs do not drift.
 
     Two parallel passes a step: forces, then reactions + closing half kick fused with

@@ -1283,7 +1283,10 @@ class _RunLoop:
         # a serial kernel runs its particle loops on one thread, whatever it is told
         bounds, first_partner = blocks.blocks(threads if sim.threaded and not one_block else 1, state.planes,
                                               state.pairs, state.first_partner)
-        return (state.particles, state.law, state.planes, state.cylinders, state.meshes, state.pairs,
+        # the contact kinds the kernel has no loops for go as empty tuples (kernel.advance)
+        cylinders, meshes, pairs = (group if getattr(self.kernel, flag, True) else () for group, flag in
+                                    ((state.cylinders, "CYLINDERS"), (state.meshes, "MESHES"), (state.pairs, "PAIRS")))
+        return (state.particles, state.law, state.planes, cylinders, meshes, pairs,
                 self.scene.gravity, state.position_at_build, self.half_skin_squared, sim.dt if dt is None else dt,
                 self.start_time, start_step, n_steps, completing,
                 self.stop_at_separation if stop_at_separation is None else stop_at_separation, trace,
