@@ -379,7 +379,7 @@ _SPARSE_ROWS = ("plane_history", "cylinder_history", "mesh_history", "pair_histo
 # again. Held, the old lists stayed resident from a rebuild to the next copy of the state,
 # and at the rebuild itself beside the old and the new list: 20 bytes a particle of the
 # settle scene at 1,000,000 (docs/benchmarks.md, "Memory per particle"). Files hold them
-# (Run.write_state): a script reading pair_history needs its pairs.
+# (_RunLoop.write_state): a script reading pair_history needs its pairs.
 _LISTS = ("pair_offsets", "pair_neighbours", "mesh_offsets", "mesh_candidates")
 _SPARSE_PARTS = ("@rows", "@values", "@shape")
 _SPARSE_BLOCK = 1 << 16  # rows scanned at a time

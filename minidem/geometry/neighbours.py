@@ -230,8 +230,8 @@ def build_pairs(positions, radii, skin):
         i = particles_by_cell[k]
         offsets[i + 1] = _scan_neighbourhood(
             i, cell_of_particle[i], cells_per_axis, cell_start, particles_by_cell,
-            sorted_positions, sorted_radii, radius_index_mask, sorted_radii[k & radius_index_mask], sorted_positions[k],
-            skin, scratch[k])
+            sorted_positions, sorted_radii, radius_index_mask, sorted_radii[k & radius_index_mask],
+            sorted_positions[k], skin, scratch[k])
     for i in range(n_particles):
         offsets[i + 1] += offsets[i]
 
@@ -246,8 +246,8 @@ def build_pairs(positions, radii, skin):
         else:
             _scan_neighbourhood(
                 i, cell_of_particle[i], cells_per_axis, cell_start, particles_by_cell,
-                sorted_positions, sorted_radii, radius_index_mask, sorted_radii[k & radius_index_mask], sorted_positions[k],
-                skin, row)
+                sorted_positions, sorted_radii, radius_index_mask, sorted_radii[k & radius_index_mask],
+                sorted_positions[k], skin, row)
         # Ascending j makes the list canonical (independent of the grid, which moves
         # with the bounding box) and gives the contact loop increasing memory access.
         # insertion sort: rows are a few dozen entries at most, and the same order as
