@@ -343,6 +343,28 @@ def test_hopper_discharges_through_its_outlet():
     assert result.time == pytest.approx(0.6)
 
 
+def test_a_restore_in_the_hopper_makes_its_mesh_and_pair_lists_again():
+    # The last good copy (State.capture) holds no Verlet list: a restore builds the pair
+    # list and the mesh candidates again from the copy's position at build. Every array
+    # the kernel carries must come back as it was when the copy was taken: the lists, and
+    # the mesh and pair contacts' histories in their rows (beads touching the cone).
+    scene = scenario.load_scene("scenarios/hopper.toml", HOPPER[:2] + ["output.vtk=false", "run.end_time=0.3"])
+    sim = simulation.Simulation(scene)
+    kept = {}
+
+    def keep(steps, total, contacts):
+        state = sim.state
+        if "copy" not in kept and state.builds > 1 and np.count_nonzero(state.meshes[5] > 0) > 5:
+            kept["copy"] = state.capture()
+            kept["live"] = {name: array.copy() for name, array in state.live_arrays().items()}
+
+    sim.run(progress=keep)
+    assert "copy" in kept and "mesh_candidates" not in kept["copy"] and sim.state.builds > kept["live"]["builds"]
+    sim.state.restore(kept["copy"])
+    for name, array in sim.state.live_arrays().items():
+        assert array.dtype == kept["live"][name].dtype and np.array_equal(array, kept["live"][name]), name
+
+
 # ---------------------------------------------------------------------------------
 # Particle generators
 # ---------------------------------------------------------------------------------

@@ -691,12 +691,13 @@ class State:
                 elif name is not None:  # replaced: list rebuilds change the lengths
                     items[k] = np.array(_full_array(arrays, name), dtype=items[k].dtype, order="C")
             setattr(self, group, tuple(items))
-        for group, what in (("pairs", "pair"), ("meshes", "mesh")):
-            listed, histories = getattr(self, group)[1].shape[0], getattr(self, group)[2 if group == "pairs" else 4]
-            if histories.shape[0] != listed:
+        # (the list's partners, the histories): one row each per entry
+        for what, listed, histories in (("pair", self.pairs[1], self.pairs[2]),
+                                        ("mesh", self.meshes[3], self.meshes[4])):
+            if histories.shape[0] != listed.shape[0]:
                 raise MinidemError(f"the saved {what} contacts ({histories.shape[0]} entries) do not match the "
-                                   f"Verlet list at the saved last list build ({listed}): the state was not "
-                                   "written by this version of minidem for this scene")
+                                   f"Verlet list at the saved last list build ({listed.shape[0]}): the state was "
+                                   "not written by this version of minidem for this scene")
         offsets, partners = self.pairs[:2]
         if partners.shape[0]:
             reverse_offsets, slot, self.first_partner = neighbours.reverse_index(offsets, partners, len(offsets) - 1)
