@@ -69,6 +69,13 @@ def test_cached_first_partners_follow_the_list_through_rebuilds_and_restores():
     made = state.lists_of(early["copy"])
     assert np.array_equal(made["pair_offsets"], early["list"][0])
     assert np.array_equal(made["pair_neighbours"], early["list"][1])
+    # a copy of now: the live lists, also while a rebuild has let go of them (an interrupt's
+    # checkpoint is written from the copy then)
+    now, live = state.capture(), state.pairs
+    state.pairs = None
+    made = state.lists_of(now)
+    state.pairs = live
+    assert np.array_equal(made["pair_offsets"], offsets) and np.array_equal(made["pair_neighbours"], partners)
     state.first_partner[:] = -7  # a restore must not keep the live ones: they are recomputed
     state.restore(early["copy"])
     offsets, partners = state.pairs[:2]

@@ -592,8 +592,9 @@ class State:
     def lists_of(self, arrays: dict) -> dict[str, np.ndarray]:
         """The Verlet lists of a capture (which holds none, _LISTS): the live ones if it
         was taken since the last list build (it holds the live position at build), else
-        made from its position at build."""
-        if np.array_equal(arrays["position_at_build"], self.position_at_build):
+        made from its position at build (also while a rebuild has let go of the live pair
+        list: an interrupt's checkpoint)."""
+        if self.pairs is not None and np.array_equal(arrays["position_at_build"], self.position_at_build):
             return {name: array for name, array in self.live_arrays().items() if name in _LISTS}
         return self.build_lists(arrays["position_at_build"])
 
