@@ -88,36 +88,41 @@ def test_the_run_loads_the_kernel_the_helper_compiled_beside_the_check(tmp_path)
     assert not json.loads(again.stdout.strip().splitlines()[-1])["started"]
 
 
-_LAW_FROM_HELPER = """
+_COMBINATION_INLINED = """
 import json
-from minidem.engine import simulation
+from minidem.engine import simulation, warmup
 from minidem.scene import scenario
-# one sphere on a plane: no neighbour search; a law with a couple (hm + epsd rolling
-# resistance), whose force function takes the longer argument list
+started = []
+plain = warmup._spawn
+warmup._spawn = lambda job, arguments=(), *rest, **named: started.append([job, list(arguments)]) or plain(
+    job, arguments, *rest, **named)
+# one sphere on a plane: no neighbour search; a combination of parts (hm + epsd rolling
+# resistance), whose generated force function takes the longer argument list
 scene = scenario.load_scene("scenarios/oblique.toml", ['contact.law="hm"', 'contact.rolling="epsd"',
                                                         "contact.rolling_friction=0.1"])
 sim = simulation.Simulation(scene)
-sim.run()
+result = sim.run()
 force = sim.law.force
-print(json.dumps({"couples": bool(sim.law.couples), "force": [sum(force.stats.cache_hits.values()),
-                                                              sum(force.stats.cache_misses.values())]}))
+print(json.dumps({"couples": bool(sim.law.couples), "started": started, "separated": bool(result.separated),
+                  "force": [sum(force.stats.cache_hits.values()), sum(force.stats.cache_misses.values())]}))
 """
 
 
-def test_the_kernel_loads_the_law_the_helper_compiled(tmp_path):
-    """On a fresh install the helper compiles the law's force function first, for the
-    argument types the kernel passes it (simulation.force_signature), and the kernel's
-    compilation waits for it: in the run's process the law is a cache hit, never compiled."""
+def test_a_combination_force_is_compiled_inside_the_kernel_and_not_beside_it(tmp_path):
+    """A combination's generated force function is inlined into the kernel
+    (minidem.contact.compose: compiled on its own it stayed a call, and the tile of pair
+    contacts could not be vector code). So it is never compiled on its own, in the run's
+    process or in a helper: the helper of a fresh install is asked for the shared
+    functions only, not for the law (warmup.start)."""
     env = dict(os.environ, MINIDEM_CACHE_DIR=str(tmp_path / "minidem"), NUMBA_CACHE_DIR=str(tmp_path / "numba"))
-    run = subprocess.run([sys.executable, "-c", _LAW_FROM_HELPER], env=env, capture_output=True, text=True)
+    run = subprocess.run([sys.executable, "-c", _COMBINATION_INLINED], env=env, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     found = json.loads(run.stdout.strip().splitlines()[-1])
-    assert found["couples"], found
-    hits, misses = found["force"]
-    if (os.cpu_count() or 1) < 2:  # no helper: the kernel compiles the law itself
-        assert misses == 1, found
-    else:
-        assert hits >= 1 and misses == 0, found
+    assert found["couples"] and found["separated"], found
+    # [cache hits, cache misses]: neither, the dispatcher was never compiled
+    assert found["force"] == [0, 0], found
+    # the law's name is the first argument of compile_for_run: None, no law to compile
+    assert all(job != "compile_for_run" or arguments[0] is None for job, arguments in found["started"]), found
 
 
 _HELPER_IMPORTS = """

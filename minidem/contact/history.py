@@ -16,7 +16,7 @@ code it supports what a law needs of its history row:
     history[s]            read slot s (s >= 0; no wrap-around, no bounds check)
     history[s] = value    write it
     history[a:b]          the slots a..b-1 as a ContactHistory (what a composed law
-                          hands each part), a >= 0
+                          hands each part); no step
     history[a:b] = value  set them all
     len(history)          the number of slots
 
@@ -27,6 +27,7 @@ which supports the same operations.
 
 import operator
 
+import numba
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic, models, overload, register_model
@@ -169,15 +170,33 @@ def _len(history):
         return lambda history: _size(history)
 
 
+@numba.njit(inline="always")
+def _bounds(index, size):
+    """The slots of a step-less slice as Python counts them (a negative bound counts from
+    the end; an empty part where the stop is not past the start), written so that a
+    constant start stays a compile-time constant: a start beyond the size is not pulled
+    back to it (the part is empty all the same).
+
+    Why: a composed law hands each part the constant slice of its slots. Clipped against
+    the run-time size as ``slice.indices`` clips it, the start (the slots' address) was
+    known only at run time, LLVM could not tell a part's slots from those the kernel
+    rotates (the same memory), checked at run time whether they overlap, and always ran
+    the tile's loop scalar (settle scene, hm+epsd+sds_twisting: 1.6x slower a step)."""
+    start = index.start + size if index.start < 0 else index.start
+    stop = index.stop + size if index.stop < 0 else index.stop
+    start = max(start, 0)
+    return start, max(min(stop, size), start)
+
+
 @overload(operator.getitem)
 def _getitem(history, index):
     if not isinstance(history, ContactHistoryType):
         return None
     if isinstance(index, types.Integer):
         return lambda history, index: _load(history, index)
-    if isinstance(index, types.SliceType):
+    if isinstance(index, types.SliceType) and not index.has_step:
         def part(history, index):
-            start, stop, _ = index.indices(_size(history))
+            start, stop = _bounds(index, _size(history))
             return _part(history, start, stop)
         return part
     return None
@@ -189,9 +208,9 @@ def _setitem(history, index, value):
         return None
     if isinstance(index, types.Integer) and isinstance(value, (types.Float, types.Integer)):
         return lambda history, index, value: _store(history, index, value)
-    if isinstance(index, types.SliceType) and isinstance(value, (types.Float, types.Integer)):
+    if isinstance(index, types.SliceType) and not index.has_step and isinstance(value, (types.Float, types.Integer)):
         def fill(history, index, value):
-            start, stop, _ = index.indices(_size(history))
+            start, stop = _bounds(index, _size(history))
             for s in range(start, stop):
                 _store(history, s, value)
         return fill

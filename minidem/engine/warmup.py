@@ -27,9 +27,10 @@ helper is done (:func:`kernel_helper`); the guard's two functions go to whicheve
 two is free first. First run of scenarios/settle.toml: the two
 compilations side by side instead of one after the other.
 
-The law's force function is compiled on its own and linked into the kernel, so the
+A preset law's force function is compiled on its own and linked into the kernel, so the
 helper compiles it first (oblique: the hmd law, ~1.2 s) and the kernel's typing waits
-for it (:meth:`Helper.law_compiled`). On a fresh install ``minidem run`` starts the helper
+for it (:meth:`Helper.law_compiled`); a combination's is inlined into the kernel and
+compiled with it. On a fresh install ``minidem run`` starts the helper
 before it imports numba and the engine (:func:`prestart`): the helper imports them while
 the run does, and is handed its job (either of the two above) once the run has read the
 scene; started after those imports, it reached the law ~0.35 s after the kernel's typing
@@ -314,7 +315,10 @@ def start(pairs: bool, meshes: bool, law=None) -> Helper:
     if not _second_cpu():
         dismiss()
         return Helper(None)
-    law_first = law is not None and hasattr(law.force, "compile") and not _cached(law.force)
+    # a force numba inlines into the kernel (a combination of parts, minidem.contact.compose)
+    # is compiled there, with the kernel: nothing to compile beside it
+    law_first = law is not None and hasattr(law.force, "compile") and not _cached(law.force) \
+        and getattr(law.force, "targetoptions", {}).get("inline") != "always"
     shared = not all(_cached(dispatcher) for dispatcher in _dispatchers(pairs, meshes).values())
     if not law_first and not shared:
         dismiss()
