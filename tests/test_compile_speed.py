@@ -1,12 +1,12 @@
-"""numba's inliner with minidem.engine.compile_speed installed: a callee's IR is copied
-with one memo for all its blocks, which must be a faithful, independent deep copy (the
-kernels' machine code is the same with and without it; their results are checked by
-every physics test)."""
+"""numba with minidem.engine.compile_speed installed: the inliner copies a callee's IR
+with one memo for all its blocks, which must be a faithful, independent deep copy, and
+the compiler flags give the values numba's own code gives (the kernels' machine code is
+the same with and without either; their results are checked by every physics test)."""
 
 import copy
 
 import numba
-from numba.core import compiler, inline_closurecall, ir
+from numba.core import compiler, inline_closurecall, ir, targetconfig
 
 from minidem.engine import compile_speed, simulation  # noqa: F401  (simulation installs it)
 
@@ -23,7 +23,33 @@ def _branchy(x, n):
 
 def test_installed_for_the_engine():
     assert isinstance(inline_closurecall.copy, compile_speed._BlockCopier)
+    assert targetconfig.TargetConfig.values is compile_speed.option_values
     assert compile_speed.install()  # idempotent
+
+
+def _numba_values(config):
+    # numba's own TargetConfig.values (numba/core/targetconfig.py, 0.68)
+    return {k: getattr(config, k) for k in config.options}
+
+
+def test_flag_values_are_numbas_key_for_key():
+    # the flags numba compiles with: fresh, as a jitted function's (nrt, error model,
+    # fastmath, no-cpython wrapper...), and copied; values, key order, hash and equality
+    # must be numba's own, or a lookup keyed by flags would miss (a recompile) or, worse,
+    # hit another overload
+    fresh = compiler.Flags()
+    jitted = compiler.Flags()
+    jitted.nrt, jitted.no_cpython_wrapper, jitted.error_model = True, True, "numpy"
+    jitted.fastmath = True
+    jitted.inline = "always"
+    copied = jitted.copy()
+    for flags in (fresh, jitted, copied):
+        assert compile_speed.option_values(flags) == _numba_values(flags)
+        assert list(compile_speed.option_values(flags)) == list(_numba_values(flags))
+        assert flags.values() == _numba_values(flags)
+    assert hash(jitted) == hash(tuple(sorted(_numba_values(jitted)))) and jitted == copied and jitted != fresh
+    copied.nrt = False  # set back to its default: equal to a flags object that never set it
+    assert copied.values()["nrt"] is False and _numba_values(copied)["nrt"] is False
 
 
 def test_block_copies_share_one_scope_and_equal_the_original():

@@ -1,4 +1,7 @@
-"""Make numba's inlining of ``inline="always"`` functions copy each callee's IR once.
+"""Two repairs of numba's compile speed, installed when the engine is imported (the same
+machine code either way; what each saves is measured below).
+
+1. Its inlining of ``inline="always"`` functions copies each callee's IR once.
 
 Why: the kernel (``minidem.engine.kernel``) is one function per law and scene shape, built
 by numba inlining its per-step functions and helpers into ``advance``. Before inlining a
@@ -20,9 +23,26 @@ changes from process to process anyway). First run of scenarios/oblique.toml: 10
 8.2 s of CPU, settle.toml's kernel 19.5 -> 13.7 s, hopper.toml's 38.0 -> 24.5 s (2-core
 AMD EPYC, empty caches, in-process).
 
-Installed once, when the engine is imported; nothing else in numba is touched. A numba
-whose inliner no longer matches (no ``copy`` module or no ``inline_ir`` there) is left
-as it is: the kernels then compile as before, only slower.
+2. Its compiler flags give their values without a Python call per option.
+
+Why: typing a call to an overloaded function (every ``np.empty``, ``max``, tuple index
+and the like, in every inlined copy) looks up the overload's implementation in a cache
+keyed by, among others, the compiler's ``Flags`` (``numba.core.typing.templates``,
+``_get_impl``). Hashing and comparing the key builds ``Flags.values()``, a dict of some
+50 options, each read through its own Python property: three such dicts a lookup, and
+the settle kernel's typing makes ~110,000 lookups (5.8 million property calls; cProfile
+made them the largest cost of the compile, its overhead per call exaggerating them: the
+real cost is below). ``values`` now merges the class's defaults with the options set,
+in C (``{**defaults, **set}``): the same dict, key for key, so the hashes, the
+comparisons and everything numba compiles are unchanged.
+Counted in-process over a cold compile and run (empty caches, the helper off, 2-core AMD
+EPYC, 2026-11-25): ``values()`` took 1.14 s of scenarios/settle.toml's (269,039 calls)
+and 0.11-0.20 s of scenarios/oblique.toml's; now 0.24 s and 0.02 s. Most of settle's
+falls in the kernel's compile, the critical path of its first run (minidem.engine.warmup).
+
+A numba whose internals no longer match (no ``copy`` module or no ``inline_ir`` in its
+inliner; no ``TargetConfig.values`` or options without defaults) is left as it is: the
+kernels then compile as before, only slower.
 """
 
 from __future__ import annotations
@@ -30,7 +50,7 @@ from __future__ import annotations
 import copy
 import functools
 
-from numba.core import inline_closurecall, ir
+from numba.core import inline_closurecall, ir, targetconfig
 
 
 class _BlockCopier:
@@ -68,6 +88,13 @@ class _BlockCopier:
 
 
 def install() -> bool:
+    """Install both repairs (idempotent); False when this numba is not the one they were
+    written for (then nothing of it is touched)."""
+    flags = _install_flag_values()
+    return _install_block_copier() and flags
+
+
+def _install_block_copier() -> bool:
     """Install the block copier into numba's inliner (idempotent); False when this numba's
     inliner is not the one it was written for."""
     worker = getattr(inline_closurecall, "InlineWorker", None)
@@ -89,4 +116,41 @@ def install() -> bool:
 
     worker.inline_ir = inline_ir
     inline_closurecall.copy = copier
+    return True
+
+
+def option_values(config) -> dict:
+    """``config.values()`` (a ``TargetConfig``, numba's compiler ``Flags``): every option's
+    value, the default where it is not set, in the class's option order. The defaults are
+    read once per class (kept in its own ``__dict__``, so a subclass with other options
+    keeps its own)."""
+    cls = type(config)
+    defaults = cls.__dict__.get("_minidem_option_defaults")
+    if defaults is None:
+        defaults = {name: option.default for name, option in cls.options.items()}
+        setattr(cls, "_minidem_option_defaults", defaults)
+    return {**defaults, **config._values}
+
+
+def _install_flag_values() -> bool:
+    """Make ``TargetConfig.values`` :func:`option_values` (idempotent), if it gives the
+    same dict as numba's own for a fresh and a modified ``Flags``; False otherwise."""
+    config = getattr(targetconfig, "TargetConfig", None)
+    plain = getattr(config, "values", None)
+    if plain is option_values:
+        return True
+    if plain is None:
+        return False
+    try:
+        from numba.core.compiler import Flags
+
+        probe = Flags()
+        probe.nrt, probe.fastmath = True, True
+        same = all(plain(flags) == option_values(flags) and list(plain(flags)) == list(option_values(flags))
+                   for flags in (Flags(), probe))
+    except Exception:  # a numba whose flags are built otherwise: leave them
+        return False
+    if not same:
+        return False
+    config.values = option_values
     return True
