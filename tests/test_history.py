@@ -50,3 +50,18 @@ def test_setting_a_slice_of_a_history_sets_the_slots_numpy_sets(start, stop):
     expected[:, 3][start:stop] = -1.0
     _fill_column(tile, 3, start, stop, -1.0)
     assert np.array_equal(tile, expected)  # no other column, no other slot touched
+
+
+@numba.njit
+def _open_slices(tile):
+    history = history_column(tile, 1, COLUMNS)
+    tail, head, whole = history[4:], history[:-2], history[:]
+    return len(tail), tail[0], len(head), head[len(head) - 1], len(whole), whole[SLOTS - 1]
+
+
+def test_open_slices_of_a_history_are_numpys():
+    # a slice with a bound left out, as a law may write it (expected: numpy's slicing)
+    tile = np.arange(SLOTS * COLUMNS, dtype=float).reshape(SLOTS, COLUMNS)
+    column = tile[:, 1]
+    expected = (len(column[4:]), column[4:][0], len(column[:-2]), column[:-2][-1], len(column[:]), column[-1])
+    assert _open_slices(tile) == expected
