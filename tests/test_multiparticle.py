@@ -4,6 +4,7 @@ per-contact history across neighbour-list rebuilds and thread counts."""
 
 import copy
 import math
+import platform
 import xml.etree.ElementTree as ET
 
 import numba
@@ -13,7 +14,7 @@ import pytest
 from conftest import contact_count
 from minidem.results import analysis
 from minidem.scene import scenario
-from minidem.engine import integrate, simulation
+from minidem.engine import blocks, integrate, simulation
 
 GLASS = {"youngs_modulus": 70e9, "poisson_ratio": 0.3, "density": 2650.0}
 RADIUS, SPEED = 0.025, 5.0
@@ -452,9 +453,16 @@ def test_same_bits_on_one_and_two_threads(monkeypatch):
     # pass), and no chunk tries one thread instead (LoopThreads)
     monkeypatch.setattr(simulation, "PARALLEL_MIN_PARTICLES", 0)
     monkeypatch.setattr(simulation.LoopThreads, "PROBE_FIRST", 10**9)
+    measured = []
+    plain_measure = blocks.BlockTiming.measure
+    monkeypatch.setattr(blocks.BlockTiming, "measure",
+                        lambda timing, *args: measured.append(plain_measure(timing, *args)) or measured[-1])
     runs = [run(t) for t in (1, 2)]
     assert runs[0].threads == 1 and runs[1].threads == 2
     assert runs[1].contacts > 50
+    if platform.machine() in ("x86_64", "AMD64"):
+        # each block's force pass counted its cycles (the next call's blocks weigh them)
+        assert len(measured) > 3 and all((cycles > 0).all() for cycles in measured[1:])
     for other in (runs[1], small):
         assert np.array_equal(runs[0].position, other.position)
         assert np.array_equal(runs[0].velocity, other.velocity)
@@ -637,11 +645,10 @@ def test_a_scene_below_the_thread_threshold_gets_the_serial_untracked_kernel():
 def test_one_thread_is_one_block_of_all_particles():
     # the blocks advance is given on one thread, chosen without compiled code; on two,
     # thread_blocks balances the work (test_same_bits_on_one_and_two_threads)
-    from minidem.engine import blocks
-
     list_first_partner = np.array([0, 1, 0, 3, 1, 2, 6])  # the list's (State.first_partner)
-    bounds, first_partner = blocks.blocks(1, None, None, list_first_partner)
+    bounds, first_partner, block_cycles = blocks.blocks(1, None, None, list_first_partner)
     assert bounds.tolist() == [0, 7] and first_partner is list_first_partner  # used as it is, not copied
+    assert block_cycles.tolist() == [0]  # nothing to balance
     assert bounds.dtype == first_partner.dtype == np.int64
 
 

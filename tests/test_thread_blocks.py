@@ -98,11 +98,14 @@ def work_by_definition(pair_offsets, pair_overlap, near_offsets, wall_overlap):
 
 
 @pytest.mark.parametrize("threads", [2, 3, 5])
-def test_balanced_bounds_are_where_the_prefix_sum_of_the_work_reaches_each_share(threads):
+@pytest.mark.parametrize("measured", [False, True])
+def test_balanced_bounds_are_where_the_prefix_sum_of_the_work_reaches_each_share(threads, measured):
     # The bounds are summed by pieces of ENERGY_BLOCK particles in parallel, then found
     # within one piece: they must be those of one prefix sum over every particle, the
     # first particle whose preceding work reaches b / threads of the total. Several
     # pieces and a short last one; the touching contacts crowded in the first piece.
+    # Measured: each particle's work weighted by the rate of the block it was in at the
+    # measurement (BlockTiming), blocks whose bounds fall inside pieces, one empty.
     rng = np.random.default_rng(7)
     n = 3 * integrate.ENERGY_BLOCK + 123
     pair_offsets = np.concatenate([[0], np.cumsum(rng.integers(0, 9, n))]).astype(np.int64)
@@ -111,8 +114,14 @@ def test_balanced_bounds_are_where_the_prefix_sum_of_the_work_reaches_each_share
     near_offsets = np.concatenate([[0], np.cumsum(rng.integers(0, 3, n))]).astype(np.int64)  # 0-2 planes near each
     wall_overlap = rng.normal(-1.0, 1.0, near_offsets[-1])
     pairs, planes = (pair_offsets, None, None, pair_overlap), (None, None, None, None, wall_overlap, near_offsets)
-    work_before = np.concatenate([[0], np.cumsum(work_by_definition(pair_offsets, pair_overlap, near_offsets,
-                                                                    wall_overlap))])
+    rate_bounds, rates = np.array([0, n]), np.ones(1, dtype=np.int64)
+    weight = np.ones(n, dtype=np.int64)
+    if measured:
+        rate_bounds = np.array([0, 700, 700, 2 * integrate.ENERGY_BLOCK + 5, n])
+        rates = np.array([1500, 900, 700, 1100])
+        weight = rates[np.searchsorted(rate_bounds, np.arange(n), side="right") - 1]
+    work = work_by_definition(pair_offsets, pair_overlap, near_offsets, wall_overlap)
+    work_before = np.concatenate([[0], np.cumsum(weight * work)])
     shares = np.arange(threads + 1) * work_before[-1] // threads
     expected = np.searchsorted(work_before, shares, side="left")
     expected[-1] = n
@@ -120,12 +129,66 @@ def test_balanced_bounds_are_where_the_prefix_sum_of_the_work_reaches_each_share
     try:
         for numba_threads in {1, min(2, numba.config.NUMBA_NUM_THREADS)}:
             numba.set_num_threads(numba_threads)
-            bounds = blocks.balanced_bounds(threads, planes, pairs, n)
+            bounds, block_work = blocks.balanced_bounds(threads, planes, pairs, n, rate_bounds, rates)
             assert bounds.tolist() == expected.tolist()
+            # and each block's work unweighted, against which its cycles are measured
+            assert block_work.tolist() == [work[expected[b]:expected[b + 1]].sum() for b in range(threads)]
     finally:
         numba.set_num_threads(previous)
     # the first block holds the crowded contacts: fewer particles than an equal split
     assert expected[1] < n // threads
+
+
+def test_measured_blocks_even_out_the_cost_the_estimate_gets_wrong():
+    # Two threads, 20,000 particles with 3 listed pairs each, a third of them touching in
+    # the lower half of the indices (a pile's lower layers). The work estimate's contact
+    # cost is CONTACT_COST; here a touching contact "really" costs half of that, so the
+    # estimate's blocks give the first thread too little. Each call's block cycles are
+    # what those costs sum to; the timing of the calls before must bring the two
+    # threads' costs together, from 18 % apart with the estimate alone, up to what the
+    # bounds can resolve: whole particles, and rates in steps of 1 / RATE_UNIT.
+    n = 20_000
+    pair_offsets = np.arange(n + 1, dtype=np.int64) * 3
+    pair_overlap = np.full(3 * n, -1.0)
+    pair_overlap[: 3 * n // 2: 3] = 1.0
+    near_offsets = np.zeros(n + 1, dtype=np.int64)
+    planes = (None, None, None, None, np.zeros(0), near_offsets)
+    pairs = (pair_offsets, None, None, pair_overlap)
+    touching = np.add.reduceat(pair_overlap > 0.0, pair_offsets[:-1])
+    true_cost = blocks.PARTICLE_COST + 3 * blocks.LISTED_COST + 0.5 * blocks.CONTACT_COST * touching
+    timing = blocks.BlockTiming()
+
+    def call():
+        bounds, _, cycles = blocks.blocks(2, planes, pairs, np.arange(n), timing)
+        # a thousand cycles a unit of cost: a call's measurement is long enough to be used
+        cycles[:] = [1000 * true_cost[bounds[b]:bounds[b + 1]].sum() for b in range(2)]
+        return cycles / cycles.mean()
+
+    alone = call()
+    assert alone[1] / alone[0] > 1.15
+    for _ in range(3):
+        spread = call()
+    resolution = 2.0 / blocks.BlockTiming.RATE_UNIT + true_cost.max() / (0.5 * true_cost.sum())
+    assert abs(spread[1] / spread[0] - 1.0) < resolution < 0.003
+    # a call too short to be measured (MIN_CYCLES) leaves the rates found before
+    bounds_before = blocks.blocks(2, planes, pairs, np.arange(n), timing)[0]
+    assert blocks.blocks(2, planes, pairs, np.arange(n), timing)[0].tolist() == bounds_before.tolist()
+
+
+def test_block_rates_are_kept_within_their_spread():
+    # A thread descheduled for a moment measures many more cycles than its work took:
+    # its rate relative to the other's is capped at RATE_SPREAD, so a bound moves
+    # at most as far as that ratio of costs would move it
+    timing = blocks.BlockTiming()
+    work = np.array([1000, 1000])
+    timing.measure(2, np.array([0, 50, 100]), work)[:] = [10**8, 10**10]
+    bounds, rates = timing.rates(2, 100)
+    assert bounds.tolist() == [0, 50, 100]
+    assert rates[1] / rates[0] == pytest.approx(blocks.BlockTiming.RATE_SPREAD, rel=2e-3)
+    # no counter (cycles 0: a processor without one) or another particle count: equal rates
+    timing.measure(2, np.array([0, 50, 100]), work)
+    assert timing.rates(2, 100)[1].tolist() == rates.tolist()  # the last good ones stay
+    assert timing.rates(2, 101)[1].tolist() == [1]
 
 
 def test_thread_blocks_mark_a_copy_of_the_lists_first_partners():
@@ -140,7 +203,7 @@ def test_thread_blocks_mark_a_copy_of_the_lists_first_partners():
     kept = list_first.copy()
     planes = (None, None, None, None, np.zeros(0), np.zeros(n + 1, dtype=np.int64))  # no plane near any
     pairs = (pair_offsets, partners, None, np.zeros(partners.shape[0]))
-    bounds, first = blocks.blocks(2, planes, pairs, list_first)
+    bounds, first, _ = blocks.blocks(2, planes, pairs, list_first)
     assert np.array_equal(list_first, kept) and first is not list_first
     assert bounds[0] == 0 and bounds[2] == n and 0 < bounds[1] < n
     marked = first == -1

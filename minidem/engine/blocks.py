@@ -10,27 +10,113 @@ What depends on the neighbour list alone, each particle's first partner, is comp
 once per list (``minidem.geometry.neighbours.reverse_index``, at each list build and
 restore: ``State.first_partner``); only the bounds, which count the contacts touching
 now, are found before every call, their sums in parallel (at N = 1,000,000 on two
-threads the whole was 18 ms of serial work before every chunk of 50 steps).
+threads the whole was 18 ms of serial work before every chunk of 50 steps). The bounds
+weigh that estimate by what each thread's block took in the calls before
+(:class:`BlockTiming`).
 """
 
 from __future__ import annotations
 
+import llvmlite.binding
 import numba
 import numpy as np
+from llvmlite import ir
+from numba.core import types
+from numba.extending import intrinsic
 
 from minidem.engine.integrate import ENERGY_BLOCK, block_particles, energy_blocks
 
 
-def blocks(threads: int, planes, pairs, first_partner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(bounds, first partner) of the kernel's ``advance`` for the given thread count
-    (see ``thread_blocks``); ``first_partner``: the list's (``State.first_partner``), not
-    written into. One thread is one block, all particles, and it is finished in the
-    force pass whatever its first partner: any index in 0..n-1 gives the same operations
-    in the same order, so the list's own is passed as it is."""
+def blocks(threads: int, planes, pairs, first_partner: np.ndarray,
+           timing: BlockTiming | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(bounds, first partner, block cycles) of the kernel's ``advance`` for the given
+    thread count (see ``thread_blocks``); ``first_partner``: the list's
+    (``State.first_partner``), not written into; ``timing``: the run's measurements of
+    its earlier calls, which correct the estimated work (:class:`BlockTiming`), and which
+    the kernel's block cycles (zeros, one per block) join for the next call. One thread
+    is one block, all particles, and it is finished in the force pass whatever its first
+    partner: any index in 0..n-1 gives the same operations in the same order, so the
+    list's own is passed as it is."""
     n = first_partner.shape[0]
     if threads > 1:
-        return thread_blocks(threads, planes, pairs, first_partner)
-    return np.array([0, n], dtype=np.int64), first_partner
+        timing = timing or BlockTiming()
+        rate_bounds, rates = timing.rates(threads, n)
+        bounds, first, work = thread_blocks(threads, planes, pairs, first_partner, rate_bounds, rates)
+        return bounds, first, timing.measure(threads, bounds, work)
+    return np.array([0, n], dtype=np.int64), first_partner, np.zeros(1, dtype=np.int64)
+
+
+@intrinsic
+def cycle_counter(typingctx):
+    """The processor's time-stamp counter (x86-64 ``rdtsc``, a constant rate on current
+    processors, read in a few nanoseconds without a system call); 0 on other processors,
+    whose counters may not be readable from user code (AArch64's PMCCNTR_EL0 traps by
+    default): their blocks are balanced by the estimate alone."""
+    def codegen(context, builder, signature, args):
+        if llvmlite.binding.get_process_triple().startswith(("x86_64", "amd64")):
+            counter = builder.module.declare_intrinsic("llvm.readcyclecounter", fnty=ir.FunctionType(ir.IntType(64), []))
+            return builder.call(counter, [])
+        return ir.Constant(ir.IntType(64), 0)
+    return types.int64(), codegen
+
+
+class BlockTiming:
+    """The cost of each thread's block as measured, for the blocks of the next call.
+
+    The estimated work (PARTICLE_COST, LISTED_COST, CONTACT_COST) is a fixed model: its
+    contact cost depends on the law (a rolling and a twisting part cost more than Hertz
+    alone), on whether the tile runs as vector code, and on the processor. On the settle
+    scene at N = 200,000 (lattice, two threads, hm) the second thread's force pass took
+    9 % more cycles than the first's, and the first waited for it at every step. So the
+    kernel counts the cycles of each block's force pass (``cycle_counter``), and the next
+    call's blocks weigh the estimated work of the particles each block held by that
+    block's measured cycles per unit of it: the costs the model gets wrong are then
+    spread as measured, as LAMMPS' ``balance ... weight time`` does across processes.
+
+    Only the bounds change, and which thread computes a particle changes no bit of the
+    result; a measurement too short to tell (MIN_CYCLES), or none (one thread, another
+    processor), leaves the last good rates, and the rates of the blocks are kept within
+    RATE_SPREAD of each other, so a thread descheduled for a moment cannot move a bound
+    far."""
+
+    # below this many cycles in all (a few milliseconds) a call's measurement is not used
+    MIN_CYCLES = 10_000_000
+    # the largest ratio of two blocks' rates
+    RATE_SPREAD = 2.0
+    # rates are integers in units of 1 / RATE_UNIT: the weighted work is summed exactly
+    # in int64, so the bounds do not depend on the order of the sums
+    RATE_UNIT = 1024
+
+    def __init__(self):
+        # thread count -> the last call's (bounds, estimated work per block, cycles per block)
+        self._measured: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        # thread count -> (the bounds the rates were measured on, the rates)
+        self._rates: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def rates(self, threads: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """(bounds, rates) for ``thread_blocks``: each block's measured cycles per unit
+        of estimated work in the last call that was measured long enough, relative to
+        the others, on the blocks it had then; equal rates before any."""
+        measured = self._measured.pop(threads, None)
+        if measured is not None:
+            bounds, work, cycles = measured
+            if cycles.min() > 0 and work.min() > 0 and cycles.sum() >= self.MIN_CYCLES and bounds[-1] == n:
+                rate = cycles / work
+                rate /= np.exp(np.log(rate).mean())
+                limit = np.sqrt(self.RATE_SPREAD)
+                rate = np.clip(rate, 1.0 / limit, limit)
+                self._rates[threads] = (bounds, np.round(rate * self.RATE_UNIT).astype(np.int64))
+        found = self._rates.get(threads)
+        if found is None or found[0][-1] != n:
+            return np.array([0, n], dtype=np.int64), np.ones(1, dtype=np.int64)
+        return found
+
+    def measure(self, threads: int, bounds: np.ndarray, work: np.ndarray) -> np.ndarray:
+        """The block cycles the kernel's call with these blocks fills (read by the next
+        :meth:`rates`)."""
+        cycles = np.zeros(threads, dtype=np.int64)
+        self._measured[threads] = (bounds, work, cycles)
+        return cycles
 
 
 # Relative cost of the force pass per particle (gravity, the plane checks), per listed
@@ -41,21 +127,22 @@ PARTICLE_COST, LISTED_COST, CONTACT_COST = 4, 1, 12
 
 
 @numba.njit(cache=True)
-def thread_blocks(threads, planes, pairs, list_first_partner):
+def thread_blocks(threads, planes, pairs, list_first_partner, rate_bounds, rates):
     """More than one thread: (bounds of ``threads`` blocks of consecutive particles with
     equal estimated work in the force pass, counting the contacts touching at the last
-    step; the first partner of each particle: the list's, ``list_first_partner`` (the
-    smallest i whose row lists it, itself if none), copied, with the marks of
-    ``defer_finishing``).
+    step and weighted by the measured rates (``balanced_bounds``); the first partner of
+    each particle: the list's, ``list_first_partner`` (the smallest i whose row lists it,
+    itself if none), copied, with the marks of ``defer_finishing``; the estimated work of
+    each block, unweighted, against which its cycles are measured).
 
     Equal particle counts were unequal work: the settle scene's lower layers (the low
     indices) touch first and most, e.g. 18,401 against 10,723 touching pairs in the two
     halves of N = 20,000 at step 3,000 (jitter). Which thread computes a particle does
     not change a bit of the result."""
-    bounds = balanced_bounds(threads, planes, pairs, list_first_partner.shape[0])
+    bounds, work = balanced_bounds(threads, planes, pairs, list_first_partner.shape[0], rate_bounds, rates)
     first_partner = list_first_partner.copy()
     defer_finishing(bounds, first_partner)
-    return bounds, first_partner
+    return bounds, first_partner, work
 
 
 @numba.njit(cache=True)
@@ -98,10 +185,31 @@ def range_work(first, last, offsets, pair_overlap, near_offsets, wall_overlap):
             + CONTACT_COST * touching)
 
 
+@numba.njit(cache=True, inline="always")
+def weighted_work(first, last, offsets, pair_overlap, near_offsets, wall_overlap, rate_bounds, rates):
+    """(weighted, plain): range_work of particles first..last-1, each particle's weighted
+    by the rate of the block (rate_bounds) it was in when the rates were measured, and
+    unweighted."""
+    block = 0
+    while block + 1 < rates.shape[0] and rate_bounds[block + 1] <= first:
+        block += 1
+    weighted, plain, start = 0, 0, first
+    while start < last:
+        stop = last if block + 1 >= rates.shape[0] else max(start, min(last, rate_bounds[block + 1]))
+        work = range_work(start, stop, offsets, pair_overlap, near_offsets, wall_overlap)
+        weighted += rates[block] * work
+        plain += work
+        start, block = stop, block + 1
+    return weighted, plain
+
+
 @numba.njit(cache=True, parallel=True)
-def balanced_bounds(threads, planes, pairs, n):
-    """Block bounds of thread_blocks for more than one thread: bounds[b] is the first
-    particle whose preceding work (particles 0..i-1) reaches b / threads of the total.
+def balanced_bounds(threads, planes, pairs, n, rate_bounds, rates):
+    """(bounds, work) of thread_blocks for more than one thread: bounds[b] is the first
+    particle whose preceding work (particles 0..i-1) reaches b / threads of the total,
+    each particle's estimated work weighted by the rate of the block it was in when the
+    rates were measured (rate_bounds, rates: integers, see ``BlockTiming``; one block of
+    rate 1 weighs nothing); work[b], the estimated work of block b, unweighted.
 
     The work is summed in parallel by pieces of consecutive particles (the energy
     blocks, ``minidem.engine.integrate.block_particles``); each bound is then found by
@@ -111,25 +219,35 @@ def balanced_bounds(threads, planes, pairs, n):
     offsets, pair_overlap, wall_overlap, near_offsets = pairs[0], pairs[3], planes[4], planes[5]
     pieces = energy_blocks(n)
     piece_work = np.zeros(pieces, dtype=np.int64)
+    piece_plain = np.zeros(pieces, dtype=np.int64)
     for piece in numba.prange(pieces):
         particles = block_particles(piece, n)
-        piece_work[piece] = range_work(particles.start, particles.stop, offsets, pair_overlap, near_offsets,
-                                       wall_overlap)
-    total = 0
+        piece_work[piece], piece_plain[piece] = weighted_work(particles.start, particles.stop, offsets, pair_overlap,
+                                                              near_offsets, wall_overlap, rate_bounds, rates)
+    total, total_plain = 0, 0
     for piece in range(pieces):
         total += piece_work[piece]
+        total_plain += piece_plain[piece]
     bounds = np.empty(threads + 1, dtype=np.int64)
+    plain_before = np.empty(threads + 1, dtype=np.int64)  # the unweighted work before each bound
     for block in range(threads + 1):
         share = block * total // threads
         # the whole pieces before the bound, then its piece particle by particle
-        piece, before = 0, 0
+        piece, before, plain = 0, 0, 0
         while piece < pieces and before + piece_work[piece] < share:
             before += piece_work[piece]
+            plain += piece_plain[piece]
             piece += 1
         i = min(piece * ENERGY_BLOCK, n)
         while i < n and before < share:
-            before += range_work(i, i + 1, offsets, pair_overlap, near_offsets, wall_overlap)
+            weighted, particle = weighted_work(i, i + 1, offsets, pair_overlap, near_offsets, wall_overlap,
+                                               rate_bounds, rates)
+            before += weighted
+            plain += particle
             i += 1
-        bounds[block] = i
-    bounds[threads] = n
-    return bounds
+        bounds[block], plain_before[block] = i, plain
+    bounds[threads], plain_before[threads] = n, total_plain
+    work = np.empty(threads, dtype=np.int64)
+    for block in range(threads):
+        work[block] = plain_before[block + 1] - plain_before[block]
+    return bounds, work

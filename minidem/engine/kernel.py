@@ -93,7 +93,7 @@ from minidem.contact.history import history_column, history_row, history_row_of
 from minidem.engine.integrate import block_sum, drift, kick_by, particle_kinetic_energy
 # the blocks of particles per thread are chosen outside the kernel (advance's bounds and
 # first_partner); named here too, where the kernel's two passes are described
-from minidem.engine.blocks import defer_finishing  # noqa: F401
+from minidem.engine.blocks import cycle_counter, defer_finishing  # noqa: F401
 
 # >>> specialisation block (rewritten by minidem.engine.simulation.compile_kernel)
 from minidem.contact.builtin_laws.linear import linear_force as law_force  # noqa: E402
@@ -919,7 +919,7 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
 
 @numba.njit(cache=True, parallel=PARALLEL, inline=INLINE)
 def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking, threads, drift_on,
-                   position_at_build, half_skin_squared, bounds, first_partner, energy_step):
+                   position_at_build, half_skin_squared, bounds, first_partner, block_cycles, energy_step):
     """Gravity and every contact force on every particle; returns (the number of
     contacts, particles finished and moved too far). Finishes every particle that has
     no partner in an earlier block (``force_range``), on one thread all of them; the
@@ -931,15 +931,19 @@ def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt
     the threads share, so it is made once per thread and step (blocks of 256 particles
     cost 48 of these per block, and the two threads' cache lines bounced between the
     cores). numba's default schedule gives each thread an equal share of a prange in
-    one piece, so those smaller blocks did not balance the load either."""
+    one piece, so those smaller blocks did not balance the load either. Each block's
+    cycles are added to ``block_cycles``, by which the next call's blocks are balanced
+    (``minidem.engine.blocks.BlockTiming``)."""
     if PARALLEL:  # a compile-time constant: serial kernels compile (and inline) one force_range
         if threads > 1:
             active, moved_too_far = 0, 0
             for block in particle_range(threads):
+                started = cycle_counter()
                 block_active, block_moved = force_range(bounds[block], bounds[block + 1], particles, law, planes,
                                                         cylinders, meshes, pairs, gravity, dt, time, tracking,
                                                         first_partner, drift_on, position_at_build, half_skin_squared,
                                                         energy_step)
+                block_cycles[block] += cycle_counter() - started
                 active += block_active
                 moved_too_far += block_moved
             return active, moved_too_far
@@ -1014,7 +1018,7 @@ def total_energy(particle_energy, block_sums):
 @numba.njit(cache=True, error_model="numpy")
 def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_at_build, half_skin_squared,
             dt, start_time, start_step, n_steps, resume, stop_at_separation, trace, tracking, threads, bounds,
-            first_partner, energy):
+            first_partner, block_cycles, energy):
     """Advance up to n_steps; return (steps completed, neighbour list needs a rebuild).
 
     Returns early
@@ -1041,7 +1045,8 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
     code makes it uncacheable). ``bounds``, ``first_partner``: its blocks of particles
     (``minidem.engine.blocks.blocks``, for ``threads`` threads; one block, all particles,
     for a serial kernel): chosen outside the kernel, which therefore does not compile
-    them anew for every law and scene shape.
+    them anew for every law and scene shape; ``block_cycles``: each block's force pass
+    adds the processor cycles it took (more than one thread), for the next call's blocks.
     ``cylinders``, ``meshes``, ``pairs``: an empty tuple when the kernel's flag is off
     (``Simulation.arguments``): each array of a tuple argument is unboxed, typed and
     lowered in a first compile, whether used or not.
@@ -1071,7 +1076,7 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
         drifted = step + 1 < n_steps and step + 1 >= trace.shape[0] and not stop_at_separation
         active, moved_too_far = compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time,
                                                tracking, threads, drifted, position_at_build, half_skin_squared, bounds,
-                                               first_partner, energy_step)
+                                               first_partner, block_cycles, energy_step)
         if status[0] != OK:
             return step + 1, False
         if PARALLEL:  # compile-time: a serial kernel has no second pass to compile

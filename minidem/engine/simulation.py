@@ -1246,6 +1246,7 @@ class _RunLoop:
         self.flight_frames = (int(math.ceil(self.start_time / self.frame_interval - 1e-9))
                               if self.frames_on and self.start_time > 0.0 else 0)
         self.loop_threads = LoopThreads(threads)
+        self.block_timing = blocks.BlockTiming()
         # loop: the run loop's own state, saved with the arrays in every checkpoint
         self.loop = {"steps": 0, "frames": 0, "last_frame_step": -1, "gravity_work_max": 0.0}
         self.energy, self.trace_chunks = [], []
@@ -1283,8 +1284,9 @@ class _RunLoop:
         kinetic-energy samples go, None for none)."""
         state, sim = self.state, self.sim
         # a serial kernel runs its particle loops on one thread, whatever it is told
-        bounds, first_partner = blocks.blocks(threads if sim.threaded and not one_block else 1, state.planes,
-                                              state.pairs, state.first_partner)
+        bounds, first_partner, block_cycles = blocks.blocks(threads if sim.threaded and not one_block else 1,
+                                                            state.planes, state.pairs, state.first_partner,
+                                                            self.block_timing)
         # the contact kinds the kernel has no loops for go as empty tuples (kernel.advance)
         cylinders, meshes, pairs = (group if getattr(self.kernel, flag, True) else () for group, flag in
                                     ((state.cylinders, "CYLINDERS"), (state.meshes, "MESHES"), (state.pairs, "PAIRS")))
@@ -1292,7 +1294,7 @@ class _RunLoop:
                 self.scene.gravity, state.position_at_build, self.half_skin_squared, sim.dt if dt is None else dt,
                 self.start_time, start_step, n_steps, completing,
                 self.stop_at_separation if stop_at_separation is None else stop_at_separation, trace,
-                self.tracking, threads, bounds, first_partner,
+                self.tracking, threads, bounds, first_partner, block_cycles,
                 (self.sample_steps if samples is not None else 0, self.scene.inertia,
                  self.no_samples if samples is None else samples, self.particle_energy, self.energy_blocks))
 
