@@ -378,19 +378,21 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--quick", action="store_true", help="a small subset (CI smoke run)")
     bench.add_argument("--only", action="append", choices=("single-impact", "work-precision", "model-only",
                                                              "sweep-timing", "multi-particle", "multi-particle-scale",
-                                                             "compile"),
+                                                             "memory-order", "compile"),
                        help="run only this section (repeatable); multi-particle, multi-particle-scale (settle.md's "
-                            "200,000 and 1,000,000 spheres) and compile (the compile time of each shipped law and "
-                            "combination) run only when named")
+                            "200,000 and 1,000,000 spheres), memory-order (the cost of a particle-step against N with "
+                            "the particles given in a random order) and compile (the compile time of each shipped law "
+                            "and combination) run only when named")
     bench.add_argument("--sizes", type=_particle_counts, default=None, metavar="N,N,...",
                        help="the particle counts of the settle scene: multi-particle (default 2000,20000), "
                             "multi-particle-scale (default 200000,1000000: at most 2e9 particle-steps a run, 2,000 "
-                            "steps at 1,000,000; hours with LIGGGHTS)")
+                            "steps at 1,000,000; hours with LIGGGHTS), memory-order (default "
+                            "20000,200000,1000000)")
     bench.add_argument("--variants", type=_variants, default=None, metavar="V,V",
                        help="multi-particle sections: lattice, jitter or both (default lattice,jitter)")
     bench.add_argument("--steps", type=_run_steps, default=None, metavar="STEPS",
                        help="multi-particle sections: steps of every run (default settle.md's: 10,000, fewer "
-                            "at scale); the table says how many")
+                            "at scale; memory-order: 400); the table says how many")
     bench.add_argument("--docs", type=Path, default=None, help="docs directory to write (default: the project's)")
     bench.set_defaults(handler=command_bench)
     return parser

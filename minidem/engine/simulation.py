@@ -33,6 +33,7 @@ from minidem.contact import history as contact_history, laws
 from minidem.engine import blocks, compile_speed, integrate, kernel, warmup
 from minidem.errors import MinidemError
 from minidem.geometry import neighbours, primitives
+from minidem.geometry.order import scattered, spatial_order
 from minidem.scene import derived
 from minidem.scene.scenario import Scene, ScenarioError
 
@@ -66,6 +67,10 @@ PARALLEL_ABOVE = 16
 # scene: docs/multi-particle.md, "Threads"). The results are the same bits either way.
 # (The run.threads text in minidem/scene/scenario.py names this number.)
 PARALLEL_MIN_PARTICLES = 5000
+# Scenes with at least this many particles, in a scattered order, are stored sorted in
+# space (minidem.geometry.order): below it the particles' arrays fit the core's own cache
+# whatever their order
+REORDER_MIN_PARTICLES = 5000
 # scene-shape flags of the kernel specialisation block, in order
 KERNEL_FLAGS = ("SPIN", "PAIRS", "CYLINDERS", "MESHES", "PARALLEL", "TRACK")
 # Automatic time step (docs/time-step.md): the smallest of the accuracy step (contact
@@ -618,7 +623,8 @@ class State:
         return neighbours.rows_of_entries(offsets), planes
 
     def contact_pairs(self):
-        """(pairs (M, 2) particle indices, normal force (M,) N) of touching particle pairs."""
+        """(pairs (M, 2) particle indices as stored, normal force (M,) N) of touching particle
+        pairs."""
         offsets, neighbours_, _, overlap, reaction, slot = self.pairs[:6]
         first = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
         touching = overlap > 0.0
@@ -759,6 +765,16 @@ class Simulation:
         # without numba's parallel pipeline, 33 of the 44 s of CPU of the first run of
         # scenarios/settle.toml (kernel flag PARALLEL)
         self.threaded = self.parallel and scene.n_particles >= PARALLEL_MIN_PARTICLES
+        # A scattered scene is stored in space order (minidem.geometry.order): everything
+        # from here on, the kernel and the files of its state (with particle_id), sees the
+        # stored order; the results (RunResult, the VTK frames) come back in the scenario's.
+        # Never for the serial, tracked loop: its probe is particle 0 of the scenario.
+        self.input_scene = scene
+        if self.parallel and scene.n_particles >= REORDER_MIN_PARTICLES and scene.particle_id is None:
+            reach = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
+            order = spatial_order(scene.position, 2.0 * float(scene.radius.max()) + reach)
+            if scattered(scene.position, order):
+                self.scene = scene = scene.reordered(order)
         self.skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
         # what the values imply (constants, contact time, dt, step count), checked before
         # the kernel is compiled: out of float64 range is bad input naming the keys
@@ -1167,6 +1183,7 @@ class Simulation:
     def _fault_message(self, status, steps) -> str:
         """What the kernel stopped for (status codes of minidem.engine.kernel)."""
         code, particle, partner, kind = (int(x) for x in status)
+        particle = self.scene.scenario_index(particle)  # as the scenario numbers them
         when = f"at step {steps} (t = {self.start_time + steps * self.dt:.6g} s)"
         walls = self.scene.walls
         if kind == kernel.PLANE:
@@ -1179,7 +1196,7 @@ class Simulation:
             own = partner - int(np.argmax(walls.triangle_table == table))
             what = f"triangle {own} of the mesh walls[{table}]"
         elif kind == kernel.PARTICLE:
-            what = f"particle {partner}"
+            what = f"particle {self.scene.scenario_index(partner)}"
         else:
             what = f"partner {partner} (kind {kind})"
         if code == kernel.NON_FINITE_FORCE:
@@ -1397,6 +1414,8 @@ class _RunLoop:
         if not all(listed in arrays for listed in _LISTS):  # and the lists (a capture holds none)
             arrays.update(self.state.lists_of(snap["arrays"]))
         arrays["probe"], arrays["stats"], arrays["status"] = snap["tracking"]
+        if self.scene.particle_id is not None:  # rows in stored order (Scene.reordered)
+            arrays["particle_id"] = self.scene.particle_id
         arrays["energy"] = np.array(self.energy[:snap["energy"]], dtype=np.float64).reshape(-1, 2)
         arrays["trace"] = np.concatenate(self.trace_chunks[:snap["trace"]]) if snap["trace"] else self.no_trace
         series = self.on_frame.checkpoint_state() if self.saves_series else None
@@ -1590,17 +1609,18 @@ class _RunLoop:
         raise KeyboardInterrupt from exc
 
     def result(self, separated, wall_time) -> RunResult:
-        sim, scene, state, stats = self.sim, self.scene, self.state, self.stats
+        sim, state, stats = self.sim, self.state, self.stats
         steps = self.loop["steps"]
+        scene, ordered = sim.input_scene, self.scene.in_scenario_order
         return RunResult(
-            scene=scene, law=sim.law, constants=sim.constants_by_pair, position=state.position,
-            velocity=state.velocity, angular_velocity=state.angular_velocity, initial_velocity=scene.velocity,
-            initial_angular_velocity=scene.angular_velocity, steps=steps, dt=sim.dt, dt_reason=sim.dt_reason,
+            scene=scene, law=sim.law, constants=sim.constants_by_pair, position=ordered(state.position),
+            velocity=ordered(state.velocity), angular_velocity=ordered(state.angular_velocity),
+            initial_velocity=scene.velocity, initial_angular_velocity=scene.angular_velocity, steps=steps, dt=sim.dt, dt_reason=sim.dt_reason,
             time=self.start_time + steps * sim.dt, separated=separated, first_contact_time=stats[0],
             last_separation_time=stats[1], max_overlap=stats[2], peak_normal_force=stats[3],
             peak_tangential_force=stats[4], wall_time=wall_time,
-            trace=np.concatenate(self.trace_chunks) if self.trace_chunks else None, force=state.force,
-            torque=state.torque, contacts=state.count_contacts(), neighbour_builds=state.builds,
+            trace=np.concatenate(self.trace_chunks) if self.trace_chunks else None, force=ordered(state.force),
+            torque=ordered(state.torque), contacts=state.count_contacts(), neighbour_builds=state.builds,
             threads=self.loop_threads.most_used(), thread_steps=dict(self.loop_threads.steps),
             energy=np.array(self.energy), contact_statistics=not sim.parallel,
             gravity_work_max=self.loop["gravity_work_max"], supply_budget=sim.supply_budget,

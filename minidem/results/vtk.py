@@ -813,7 +813,10 @@ class SimulationFrames:
     def __init__(self, simulation, directory):
         from minidem.geometry.walls import display_meshes
 
-        scene = simulation.scene
+        # frames in the scenario's order, whatever order the engine stores the particles in
+        # (Scene.reordered): row k of every frame is particle k of the scenario
+        self.stored = simulation.scene
+        scene = simulation.input_scene
         self.scene = scene
         self.writer = VTKSeriesWriter(directory, "particles")
         self.ids = np.arange(scene.n_particles, dtype=np.int64)
@@ -825,8 +828,13 @@ class SimulationFrames:
 
     def __call__(self, time_s, state) -> None:
         pairs, normal_force = state.contact_pairs() if self.scene.vtk_contacts else (None, None)
-        self.writer.write_frame(time_s, state.position, self.scene.radius, state.velocity, state.angular_velocity,
-                                state.force, self.ids, self.scene.particle_material, pairs, normal_force)
+        stored = self.stored
+        if pairs is not None and stored.particle_id is not None:
+            pairs = stored.particle_id[pairs]
+        ordered = stored.in_scenario_order
+        self.writer.write_frame(time_s, ordered(state.position), self.scene.radius, ordered(state.velocity),
+                                ordered(state.angular_velocity), ordered(state.force), self.ids,
+                                self.scene.particle_material, pairs, normal_force)
         self.frames += 1
 
     def checkpoint_state(self) -> dict:

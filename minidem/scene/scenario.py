@@ -308,6 +308,9 @@ class Scene:
     # [contact.pairs."a/b"]: (material index, material index) (both orders) -> the law's
     # parameters for that pair, the scene's values with the pair's overrides
     pair_parameters: dict = dataclasses.field(default_factory=dict)
+    # the index in the scenario of each stored particle, when the engine stores them in
+    # another order (reordered); None: the scenario's own order
+    particle_id: np.ndarray | None = None
 
     @property
     def n_particles(self) -> int:
@@ -326,6 +329,27 @@ class Scene:
         closed form (run.integrator = "analytic_flight")."""
         walls = self.walls
         return self.n_particles == 1 and not walls.cylinder_base.shape[0] and not walls.triangles.shape[0]
+
+    def reordered(self, order: np.ndarray) -> "Scene":
+        """This scene with its particles stored in ``order`` (``order[k]``: the particle
+        stored at k); ``particle_id`` keeps each one's index in the scenario."""
+        ids = np.arange(self.n_particles, dtype=np.int64) if self.particle_id is None else self.particle_id
+        return dataclasses.replace(
+            self, position=self.position[order], velocity=self.velocity[order],
+            angular_velocity=self.angular_velocity[order], radius=self.radius[order],
+            particle_material=self.particle_material[order], particle_id=ids[order])
+
+    def in_scenario_order(self, stored: np.ndarray) -> np.ndarray:
+        """Rows in storage order (one per particle) put back in the scenario's order."""
+        if self.particle_id is None:
+            return stored
+        rows = np.empty_like(stored)
+        rows[self.particle_id] = stored
+        return rows
+
+    def scenario_index(self, stored: int) -> int:
+        """The scenario's index of the particle stored at ``stored``."""
+        return stored if self.particle_id is None else int(self.particle_id[stored])
 
     @property
     def mass(self) -> np.ndarray:
@@ -1118,7 +1142,9 @@ def _tangent(normal: np.ndarray, given, errors: _Errors):
 
 
 def _particle_name(scene: Scene, index: int) -> str:
-    """The scenario table a particle came from (the [impact] sphere is particle 0)."""
+    """The scenario table a particle came from (the [impact] sphere is particle 0);
+    ``index`` is where the scene stores it (Scene.reordered)."""
+    index = scene.scenario_index(index)
     for k, (first, stop) in enumerate(scene.fill_ranges):
         if first <= index < stop:
             return f"fill[{k}] (particle {index}, sphere {index - first} of the fill)"

@@ -541,13 +541,14 @@ def section_sweep(timing: dict, command: str, load=None) -> str:
 
 
 SECTION_ORDER = ("single-impact", "work-precision", "model-only", "sweep-timing", "multi-particle",
-                 "multi-particle-scale", "compile")
+                 "multi-particle-scale", "memory-order", "compile")
 _HEADINGS = {"single-impact": "## Single impact: engine error against the reference",
              "work-precision": "## Work-precision (single impact)",
              "model-only": "## Model only what a scene needs",
              "sweep-timing": "## Paper sweep timing",
              "multi-particle": "## Multi-particle throughput",
              "multi-particle-scale": "## Multi-particle throughput at scale",
+             "memory-order": "## Memory order against N",
              "compile": "## Compile time of each contact model"}
 
 
@@ -621,6 +622,13 @@ def run(quick: bool = False, docs: Path = DOCS, sections=ALL_SECTIONS, echo=prin
         texts["multi-particle-scale"] = bench_multi.run_scale(
             1 if quick else 3, command, stamp, echo, sizes=tuple(sizes) if sizes else bench_multi.SCALE_SIZES,
             variants=variants or bench_multi.VARIANTS, steps=steps)
+    if "memory-order" in sections:
+        from minidem.studies import bench_multi
+
+        echo("bench: memory order against N (the settle scene in the fill's order and shuffled)")
+        texts["memory-order"] = bench_multi.memory_order(1 if quick else 3, command, stamp, echo,
+                                                         sizes=tuple(sizes) if sizes else bench_multi.ORDER_SIZES,
+                                                         steps=steps)
     if "compile" in sections:
         from minidem.studies import bench_compile
 

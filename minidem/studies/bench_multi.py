@@ -54,6 +54,13 @@ overrides = [f"fill.0.count={n}", f"fill.0.jitter={jitter}", f"run.threads={thre
 if sys.argv[8] != "-":  # a column taller than the scene file's 1 m box (above 919,000 spheres)
     overrides += [f"fill.0.upper=[0.1, 0.1, {sys.argv[8]}]", f"walls.0.upper=[0.1, 0.1, {sys.argv[8]}]"]
 scene = scenario.load_scene(sys.argv[7], overrides, out)
+order = sys.argv[9]  # "fill": as the lattice fill makes them; "shuffled": given in a random order,
+if order != "fill":  # stored as minidem chooses; "shuffled-as-given": the spatial sort turned off
+    import dataclasses, numpy
+    scene = dataclasses.replace(scene.reordered(numpy.random.default_rng(1).permutation(scene.n_particles)),
+                                particle_id=None)
+    if order == "shuffled-as-given":
+        simulation.REORDER_MIN_PARTICLES = 10**18
 sim = simulation.Simulation(scene)
 frames = None
 if vtk == "true":
@@ -109,13 +116,19 @@ def box_height(n: int) -> float | None:
     return top if top > 1.0 else None
 
 
+ORDERS = ("fill", "shuffled-as-given", "shuffled")
+
+
 def run_minidem(n: int, jitter: float, threads: int | str, steps: int = STEPS, vtk: bool = False,
-                out: Path | None = None) -> dict:
-    """``threads``: run.threads, or e.g. "2pinned": two threads for every chunk."""
+                out: Path | None = None, order: str = "fill") -> dict:
+    """``threads``: run.threads, or e.g. "2pinned": two threads for every chunk.
+    ``order``: the particles as the fill makes them, or given in a random order (ORDERS:
+    stored as minidem chooses, or with its spatial sort turned off)."""
     out = out or Path(tempfile.gettempdir()) / "minidem-bench-settle"
     height = box_height(n)
     stdout, _, rss = _run_measured([sys.executable, "-c", _CHILD, n, repr(jitter), threads, steps,
-                                    "true" if vtk else "false", out, SETTLE, "-" if height is None else repr(height)])
+                                    "true" if vtk else "false", out, SETTLE, "-" if height is None else repr(height),
+                                    order])
     record = json.loads(stdout.strip().splitlines()[-1])
     record["peak_rss_mib"] = rss
     record["rate"] = n * record["steps"] / record["wall_s"]
@@ -346,6 +359,49 @@ def section(results: dict, command: str, stamp, heading: str = "## Multi-particl
               f"(`output.interval = 0.01` s: {results['frames']} frames in 0.2 s): step loop {off:.2f} s without, "
               f"{on:.2f} s with output, {100 * (on / off - 1):+.1f} % (medians).", ""]
     return "\n".join(lines)
+
+
+ORDER_SIZES, ORDER_STEPS = (20_000, 200_000, 1_000_000), 400
+
+
+def memory_order(repeats: int, command: str, stamp, echo=print, sizes=ORDER_SIZES, steps=None) -> str:
+    """Issue 15, target 2: the cost of a particle-step against N, with the particles in the
+    fill's (spatial) order and in a random order, stored as given or sorted by minidem
+    (minidem.geometry.order). One thread, jitter, fresh processes, interleaved."""
+    steps = steps or ORDER_STEPS
+    echo("bench: warm-up (compile or load the settle kernel)")
+    run_minidem(6_000, JITTER["jitter"], 1, steps=10, order="shuffled")
+    load = os.getloadavg()
+    rows = {}
+    for n in sizes:
+        runs = {order: [] for order in ORDERS}
+        for repeat in range(repeats):
+            for order in ORDERS:
+                runs[order].append(run_minidem(n, JITTER["jitter"], 1, steps, order=order))
+            echo(f"bench: memory order N={n} repeat {repeat + 1}/{repeats}: "
+                 + ", ".join(f"{order} {v[-1]['rate']:.3g}/s" for order, v in runs.items()))
+        rows[n] = runs
+    lines = ["## Memory order against N", "", stamp(command),
+             f"Load average (1, 5, 15 min) at the start {', '.join(f'{x:.2f}' for x in load)}, at the end "
+             f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}.", "",
+             f"Scene: `scenarios/bench/settle.toml`, jitter, {steps:,} steps from rest (the same phase at every N), "
+             "one thread, a fresh process a run, the three orders interleaved, medians of "
+             f"{repeats}. 'fill': the particles as the lattice fill makes them (x fastest, then y, then z: spatial); "
+             "'shuffled': the same particles given in a random order (seeded), which minidem stores sorted in "
+             "space (docs/multi-particle.md, 'The order particles are stored in'); 'shuffled, as given': the same "
+             "with that sort turned off. ns a particle-step = the step loop's wall time / (N x steps).", "",
+             "| N | fill: particle-steps/s (ns each) | shuffled, as given | shuffled, sorted by minidem | "
+             "as given / sorted |", "|---|---|---|---|---|"]
+    for n, runs in rows.items():
+        rate = {order: _median(v, "rate") for order, v in runs.items()}
+        cells = [f"{rate[o]:.3g} ({1e9 / rate[o]:.1f})" for o in ORDERS]
+        lines.append(f"| {n:,} | {cells[0]} | {cells[1]} | {cells[2]} | "
+                     f"{rate['shuffled'] / rate['shuffled-as-given']:.2f}x |")
+    first, last = min(rows), max(rows)
+    for order in ("fill", "shuffled"):
+        a, b = _median(rows[first][order], "rate"), _median(rows[last][order], "rate")
+        lines.append(f"\n{order}: the rate at {last:,} is {b / a:.2f}x the rate at {first:,}.")
+    return "\n".join(lines) + "\n"
 
 
 def run(repeats: int, command: str, stamp, echo=print, sizes=SIZES, variants=VARIANTS, steps=None) -> str:
