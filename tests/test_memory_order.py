@@ -41,21 +41,27 @@ def shuffle():
 def test_spatial_order_sorts_a_shuffled_lattice_back_into_layers(shuffle):
     position = lattice_positions()
     shuffled = position[shuffle]
-    order = spatial_order(shuffled, 2.5e-3)
+    cell = 1.25e-3  # half the list cutoff 2 R + skin, as the engine sorts
+    order = spatial_order(shuffled, cell)
     assert np.array_equal(np.sort(order), np.arange(N))  # a permutation
     stored = shuffled[order]
-    # cells of 2.5 mm: layers 2.2 mm apart fall in non-decreasing cells of z, then y, then x
-    cell = np.floor((stored - stored.min(axis=0)) / 2.5e-3).astype(np.int64)
-    key = (cell[:, 2] * 1000 + cell[:, 1]) * 1000 + cell[:, 0]
+    # non-decreasing cells of z, then y, then x
+    index = np.floor((stored - stored.min(axis=0)) / cell).astype(np.int64)
+    key = (index[:, 2] * 1000 + index[:, 1]) * 1000 + index[:, 0]
     assert np.all(np.diff(key) >= 0)
+    # sites 2.2 mm apart lie one to a cell, layers in cells of their own: the shuffled lattice
+    # sorts back to its fill's layers (a jittered row may straddle two cells of y)
+    layer = np.floor(stored[:, 2] / 2.2e-3).astype(np.int64)
+    assert np.all(np.diff(layer) >= 0)
+    assert np.mean(shuffle[order] == np.arange(N)) > 0.8
     # consecutive spheres are neighbours again: the lattice's own order is ~1.07x the sorted
     # one's mean step (its rows' ends jump across the box), a random order ~24x
     assert mean_step(stored) < 1.2 * mean_step(position)
     assert scattered(shuffled, order)
-    assert not scattered(position, spatial_order(position, 2.5e-3))
+    assert not scattered(position, spatial_order(position, cell))
     assert mean_step(shuffled) > 2 * SCATTERED_RATIO * mean_step(stored)
     # stable: ties (the same cell) keep their given order, so a scene always sorts the same way
-    assert np.array_equal(order, spatial_order(shuffled, 2.5e-3))
+    assert np.array_equal(order, spatial_order(shuffled, cell))
 
 
 def test_a_scattered_scene_runs_the_same_physics_in_space_order(shuffle):

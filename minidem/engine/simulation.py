@@ -772,7 +772,9 @@ class Simulation:
         self.input_scene = scene
         if self.parallel and scene.n_particles >= REORDER_MIN_PARTICLES and scene.particle_id is None:
             reach = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
-            order = spatial_order(scene.position, 2.0 * float(scene.radius.max()) + reach)
+            # cells of half the list cutoff (LAMMPS' default bin for its sort): a jittered
+            # lattice then has one sphere a cell and sorts to its fill's order exactly
+            order = spatial_order(scene.position, 0.5 * (2.0 * float(scene.radius.max()) + reach))
             if scattered(scene.position, order):
                 self.scene = scene = scene.reordered(order)
         self.skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
