@@ -94,11 +94,24 @@ class HistorySlot:
     their magnitude) and stores them as seen from the first particle of the pair, so a
     law can treat them as 2-D tangential vectors. Scalar slots are never touched by the
     engine. All slots are zero at first touch and dropped at separation.
+
+    ``exchange`` is what the slot holds when the same contact is seen from its other
+    sphere (i and j exchanged, so the normal points the other way): +1 the same value (a
+    magnitude, a count, a flag, a couple about the normal, a scalar along an axis that
+    turns with the contact), -1 its negative (a force, a displacement or a couple on the
+    first body, a direction in the tangent plane). The engine re-sorts the particles of a
+    run in space as they mix (docs/multi-particle.md), which can exchange the two spheres
+    of a live contact; it does so only when every slot of the law says what that does
+    (LAMMPS' granular sub-models declare the same as ``transfer_history_factor``). None
+    (the default): not declared, and the particles of a run with this law keep the order
+    they started in. ``tests/test_memory_order.py`` checks the shipped laws' signs: a run
+    whose contacts are all seen from their other sphere half-way gives the same forces.
     """
 
     name: str
     description: str
     vector: bool = False
+    exchange: int | None = None
 
     @property
     def size(self) -> int:
@@ -219,6 +232,14 @@ class ContactLaw:
     @property
     def force_arguments(self) -> tuple[str, ...]:
         return FORCE_ARGUMENTS + (COUPLE_ARGUMENTS if self.couples else ())
+
+    @property
+    def exchange_signs(self) -> tuple[float, ...] | None:
+        """Each history float's HistorySlot.exchange, or None when a slot does not declare
+        it."""
+        if any(slot.exchange is None for slot in self.history):
+            return None
+        return tuple(float(slot.exchange) for slot in self.history for _ in range(slot.size))
 
     @property
     def vector_history_offsets(self) -> tuple[int, ...]:
@@ -779,6 +800,9 @@ def _shared_declaration_problem(item) -> str | None:
         items = getattr(item, field)
         if not isinstance(items, tuple) or not all(isinstance(x, kind) for x in items):
             return f"'{field}' must be a tuple of minidem.contact.{kind.__name__}"
+    for slot in item.history:
+        if slot.exchange not in (None, 1, -1):
+            return f"history slot '{slot.name}': exchange must be +1, -1 or None, got {slot.exchange!r}"
     names = [p.name for p in item.parameters]
     if len(set(names)) != len(names):
         return "parameter names are not unique"

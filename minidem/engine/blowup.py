@@ -57,11 +57,10 @@ class Fault:
 class Guard:
     def __init__(self, sim):
         scene = sim.scene
-        self.mass, self.inertia = scene.mass, scene.inertia
+        self.sim = sim
+        self.follow(scene)
         self.gravity = np.asarray(scene.gravity, dtype=np.float64)
         self.gravity_magnitude = float(np.linalg.norm(self.gravity))
-        # the scene's own positions (a run advances a copy of them), not another copy
-        self.initial_position = scene.position
         initial_kinetic = 0.5 * float(np.dot(self.mass, np.einsum("ik,ik->i", scene.velocity, scene.velocity))
                                       + np.dot(self.inertia, np.einsum("ik,ik->i", scene.angular_velocity,
                                                                        scene.angular_velocity)))
@@ -84,6 +83,14 @@ class Guard:
         self.lower, self.upper = lower, upper
         self.extent = float(np.linalg.norm(upper - lower))
 
+    def follow(self, scene) -> None:
+        """The scene's per-particle arrays in the order it stores the particles (a run may
+        sort them again, Simulation.sort_in_space)."""
+        self.scene = scene
+        self.mass, self.inertia = scene.mass, scene.inertia
+        # the scene's own positions (a run advances a copy of them), not another copy
+        self.initial_position = scene.position
+
     def budget(self, position, gravity_work_max: float) -> tuple[float, float]:
         """(energy budget J, the largest work of gravity so far J, to carry to the next check)."""
         work = float(np.dot(self.mass, (position - self.initial_position) @ self.gravity))
@@ -91,7 +98,11 @@ class Guard:
         return self.base_budget + gravity_work_max, gravity_work_max
 
     def check(self, state, time: float, gravity_work_max: float) -> tuple[Fault | None, float]:
-        """(the first fault found or None, updated largest work of gravity)."""
+        """(the first fault found or None, updated largest work of gravity). The fault's
+        particle is the row it is stored in; the messages name the scenario's index."""
+        if self.sim.scene is not self.scene:
+            self.follow(self.sim.scene)
+        name_of = self.scene.scenario_index
         bad, kinetic, top, gravity_work, far, distance = self.survey(
             state.position, state.velocity, state.angular_velocity, state.force, state.torque, self.mass,
             self.inertia, self.initial_position, self.gravity, self.lower, self.upper)
@@ -99,7 +110,7 @@ class Guard:
             arrays = {"position": state.position, "velocity": state.velocity,
                       "angular velocity": state.angular_velocity, "force": state.force, "torque": state.torque}
             name = next(name for name, array in arrays.items() if not np.isfinite(array[bad]).all())
-            return Fault("non-finite state", bad, f"particle {bad} has {name} {arrays[name][bad].tolist()}"), \
+            return Fault("non-finite state", bad, f"particle {name_of(bad)} has {name} {arrays[name][bad].tolist()}"), \
                 gravity_work_max
         gravity_work_max = max(gravity_work_max, gravity_work)
         budget = self.base_budget + gravity_work_max
@@ -109,13 +120,13 @@ class Guard:
                 f"the kinetic energy {kinetic:.3g} J is {kinetic / budget:.3g} times the scene's energy budget "
                 f"{budget:.3g} J (initial kinetic energy + work of gravity so far"
                 + (f" + what adhesion can supply, {self.supply_budget:.3g} J" if self.supply_budget else
-                   "; passive contacts cannot add energy") + f"); particle {top} moves at {float(np.linalg.norm(state.velocity[top])):.3g} m/s where "
+                   "; passive contacts cannot add energy") + f"); particle {name_of(top)} moves at {float(np.linalg.norm(state.velocity[top])):.3g} m/s where "
                 f"the budget allows at most {allowed:.3g} m/s")), gravity_work_max
         reach = (self.extent + REACH_FACTOR * math.sqrt(2.0 * budget / self.lightest) * time
                  + 0.5 * self.gravity_magnitude * time * time)
         if distance > reach:
             return Fault("domain", far, (
-                f"particle {far} left the domain: it is at {state.position[far].tolist()} m, {distance:.3g} m "
+                f"particle {name_of(far)} left the domain: it is at {state.position[far].tolist()} m, {distance:.3g} m "
                 f"outside the box spanned by the initial particles and the finite walls ({self.lower.tolist()} "
                 f"to {self.upper.tolist()} m), farther than the scene's energy could carry any particle by "
                 f"t = {time:.6g} s ({reach:.3g} m)")), gravity_work_max
@@ -206,8 +217,9 @@ def _combine(found):
     return -1, kinetic, top, work, far, distance
 
 
-def contacts_of(state, particle: int) -> list[str]:
-    """The partners particle ``particle`` touches (overlap > 0) in ``state``."""
+def contacts_of(state, particle: int, scenario_index=int) -> list[str]:
+    """The partners particle ``particle`` touches (overlap > 0) in ``state``; other
+    particles named by ``scenario_index`` of the row they are stored in (Scene.scenario_index)."""
     found = []
     plane_overlap, near_offsets, near_planes = state.planes[4:7]  # per near-plane entry
     row = slice(near_offsets[particle], near_offsets[particle + 1])
@@ -225,5 +237,5 @@ def contacts_of(state, particle: int) -> list[str]:
         touching = overlap > 0
         partners = np.concatenate([neighbours[touching & (first == particle)],
                                    first[touching & (neighbours == particle)]])
-        found += [f"particle {j}" for j in np.sort(partners)]
+        found += [f"particle {scenario_index(int(j))}" for j in np.sort(partners)]
     return found

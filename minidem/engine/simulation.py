@@ -33,7 +33,7 @@ from minidem.contact import history as contact_history, laws
 from minidem.engine import blocks, compile_speed, integrate, kernel, warmup
 from minidem.errors import MinidemError
 from minidem.geometry import neighbours, primitives
-from minidem.geometry.order import scattered, spatial_order
+from minidem.geometry.order import exchange_pairs, mean_step, permute_rows, scattered, spatial_order
 from minidem.scene import derived
 from minidem.scene.scenario import Scene, ScenarioError
 
@@ -71,6 +71,11 @@ PARALLEL_MIN_PARTICLES = 5000
 # space (minidem.geometry.order): below it the particles' arrays fit the core's own cache
 # whatever their order
 REORDER_MIN_PARTICLES = 5000
+# ... and sorted again at a list rebuild when consecutive particles have drifted this many
+# times further apart on average than just after the last sort (the particles mix as they
+# flow), if the law declares how its history reads from a contact's other sphere
+# (HistorySlot.exchange)
+RESORT_RATIO = 2.0
 # scene-shape flags of the kernel specialisation block, in order
 KERNEL_FLAGS = ("SPIN", "PAIRS", "CYLINDERS", "MESHES", "PARALLEL", "TRACK")
 # Automatic time step (docs/time-step.md): the smallest of the accuracy step (contact
@@ -510,9 +515,10 @@ class State:
         self.angular_velocity = scene.angular_velocity.copy()
         self.force = np.zeros((n, 3))
         self.torque = np.zeros((n, 3))
-        self.mass = scene.mass
-        self.particles = (self.position, self.velocity, self.angular_velocity, self.force, self.torque,
-                          self.mass, 1.0 / self.mass, 1.0 / scene.inertia, scene.radius, scene.particle_material)
+        self.follow_scene(scene)
+        # the mean distance of consecutive particles when they were last sorted (or at the
+        # start): Simulation.rebuild sorts them again when they drift far from it
+        self.sorted_step, self.sorts = mean_step(self.position), 0
         self.law = (sim.pair_row, sim.constants)
         # Plane contacts are kept per near-plane entry (neighbours.near_planes, CSR): the
         # planes each sphere may touch before the next list build, listed at each build
@@ -552,6 +558,13 @@ class State:
         # every call, and it changes only with the list (Simulation.rebuild, restore)
         self.first_partner = np.arange(n)
         self.builds = 0
+
+    def follow_scene(self, scene: Scene) -> None:
+        """The kernel's particle tuple with the scene's arrays (mass, radius, material) in
+        the order the scene stores the particles (Simulation.use_order)."""
+        self.mass, self.particle_id = scene.mass, scene.particle_id
+        self.particles = (self.position, self.velocity, self.angular_velocity, self.force, self.torque,
+                          self.mass, 1.0 / self.mass, 1.0 / scene.inertia, scene.radius, scene.particle_material)
 
     def list_near_planes(self) -> None:
         """The planes each sphere may touch until the next list build (at position_at_build),
@@ -683,6 +696,9 @@ class State:
         for group, names in _STATE_TUPLES.items():
             live.update((name, array) for name, array in zip(names, getattr(self, group)) if name is not None)
         live["builds"] = np.array(self.builds, dtype=np.int64)
+        live["sorted_step"] = np.array([self.sorted_step])  # m; an array of one, as the files hold
+        if self.particle_id is not None:  # rows in a stored order (Simulation.use_order)
+            live["particle_id"] = self.particle_id
         return live
 
     def restore(self, arrays: dict) -> None:
@@ -721,6 +737,7 @@ class State:
                                "state was not written by this version of minidem for this scene")
         self.planes = self.planes[:5] + (offsets, planes)
         self.builds = int(arrays["builds"])
+        self.sorted_step = float(np.asarray(arrays["sorted_step"]).reshape(-1)[0])
 
     def count_contacts(self) -> int:
         return int(np.count_nonzero(self.pairs[3] > 0) + np.count_nonzero(self.planes[4] > 0)
@@ -770,11 +787,18 @@ class Simulation:
         # stored order; the results (RunResult, the VTK frames) come back in the scenario's.
         # Never for the serial, tracked loop: its probe is particle 0 of the scenario.
         self.input_scene = scene
-        if self.parallel and scene.n_particles >= REORDER_MIN_PARTICLES and scene.particle_id is None:
-            reach = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
-            # cells of half the list cutoff (LAMMPS' default bin for its sort): a jittered
-            # lattice then has one sphere a cell and sorts to its fill's order exactly
-            order = spatial_order(scene.position, 0.5 * (2.0 * float(scene.radius.max()) + reach))
+        self.sorts = self.parallel and scene.n_particles >= REORDER_MIN_PARTICLES and scene.particle_id is None
+        signs = self.law.exchange_signs
+        # sorted again during the run (rebuild) only when the law says how a contact's
+        # history reads from its other sphere: a sort can exchange the two
+        self.exchange_signs = np.array(signs) if self.sorts and self.pairs and signs is not None else None
+        # cells of half the list cutoff (LAMMPS' default bin for its sort): a jittered
+        # lattice has one sphere a cell and sorts back to its fill's layers and rows
+        skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
+        self.sort_cell = 0.5 * (2.0 * float(scene.radius.max()) + skin)
+        self.resort_ratio = RESORT_RATIO
+        if self.sorts:
+            order = self.space_order(scene.position)
             if scattered(scene.position, order):
                 self.scene = scene = scene.reordered(order)
         self.skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
@@ -1055,9 +1079,58 @@ class Simulation:
             return scene.end_time
         return max(self.start_time, self.flight_time) + 100.0 * self.reference_contact_time
 
+    # -- the order particles are stored in (minidem.geometry.order) ---------------------
+    def use_order(self, state: State, particle_id) -> None:
+        """Store the particles in the order ``particle_id`` names (the scenario's index of
+        each row; None: the scenario's own order): the scene's arrays in that order and the
+        state's tuple of them. The state's own arrays are the caller's to put in order (a
+        restore reads them from a copy taken in that order)."""
+        current = self.scene.particle_id
+        if (particle_id is None and current is None) or (
+                particle_id is not None and current is not None and np.array_equal(particle_id, current)):
+            return
+        self.scene = (self.input_scene if particle_id is None else
+                      self.input_scene.reordered(np.asarray(particle_id, dtype=np.int64)))
+        state.follow_scene(self.scene)
+
+    def space_order(self, position: np.ndarray) -> np.ndarray:
+        """The order the particles at ``position`` are stored in when sorted (``order[k]``:
+        the particle stored at k). ``minidem verify`` replaces it on an instance, with a
+        reversal at every list build (and ``resort_ratio`` 0), to check a law's
+        HistorySlot.exchange."""
+        return spatial_order(position, self.sort_cell)
+
+    def sort_in_space(self, state: State) -> None:
+        """Store the particles sorted in space again, with everything that has a row per
+        particle, or per contact of a particle, in the new order: a pair whose spheres' order
+        turns over is listed under the other sphere, its history as seen from there
+        (HistorySlot.exchange). Between list builds: the lists made next start from it."""
+        order = self.space_order(state.position)
+        for name in _STATE_ARRAYS:
+            setattr(state, name, getattr(state, name)[order])
+        stored = self.scene.particle_id
+        self.use_order(state, order if stored is None else stored[order])
+        state.follow_scene(self.scene)  # the tuple of the arrays just made, whatever the order
+        cylinders = state.cylinders
+        state.cylinders = cylinders[:5] + (cylinders[5][order], cylinders[6][order])
+        planes = state.planes
+        offsets, (near, history, overlap) = permute_rows(planes[5], order, planes[6], planes[3], planes[4])
+        state.planes = planes[:3] + (history, overlap, offsets, near)
+        meshes = state.meshes
+        offsets, (candidates, history, overlap) = permute_rows(meshes[2], order, meshes[3], meshes[4], meshes[5])
+        state.meshes = meshes[:2] + (offsets, candidates, history, overlap)
+        state.pairs = exchange_pairs(*state.pairs[:4], order, self.exchange_signs) + (None,) * 5
+        state.first_partner = None
+        state.sorted_step = mean_step(state.position)
+        state.sorts += 1
+
     # -- neighbour lists -----------------------------------------------------------
     def rebuild(self, state: State) -> None:
-        """New Verlet lists at the current positions; every contact keeps its history."""
+        """New Verlet lists at the current positions; every contact keeps its history.
+        The particles are first sorted in space again when they have mixed (RESORT_RATIO)."""
+        if (self.exchange_signs is not None and state.builds > 0
+                and mean_step(state.position) > self.resort_ratio * state.sorted_step):
+            self.sort_in_space(state)
         radius = self.scene.radius
         lists = None
         if self.pairs:
@@ -1221,7 +1294,7 @@ class _RunLoop:
     def __init__(self, sim, chunk_steps, progress, on_frame, threads, policy, resume_from):
         from minidem.engine import blowup, checkpoint
 
-        self.sim, self.scene, self.kernel = sim, sim.scene, sim.kernel
+        self.sim, self.kernel = sim, sim.kernel
         self.blowup, self.checkpoint = blowup, checkpoint
         self.chunk_steps, self.progress, self.on_frame, self.policy = chunk_steps, progress, on_frame, policy
         scene = self.scene
@@ -1270,6 +1343,11 @@ class _RunLoop:
         self.loop = {"steps": 0, "frames": 0, "last_frame_step": -1, "gravity_work_max": 0.0}
         self.energy, self.trace_chunks = [], []
         self.resume_from = resume_from
+
+    @property
+    def scene(self) -> Scene:
+        """The scene in the order its particles are stored now (Simulation.use_order)."""
+        return self.sim.scene
 
     # -- the compiled steps ------------------------------------------------------
     def frame_step(self, index):
@@ -1333,6 +1411,7 @@ class _RunLoop:
         sim, state, loop = self.sim, self.state, self.loop
         if self.resume_from is not None:
             arrays, meta = self.resume_from
+            sim.use_order(state, arrays.get("particle_id"))  # rows in the order they were stored
             state.restore(arrays)
             self.probe[:], self.stats[:], self.status[:] = arrays["probe"], arrays["stats"], arrays["status"]
             loop.update({key: meta["loop"][key] for key in loop})
@@ -1416,8 +1495,6 @@ class _RunLoop:
         if not all(listed in arrays for listed in _LISTS):  # and the lists (a capture holds none)
             arrays.update(self.state.lists_of(snap["arrays"]))
         arrays["probe"], arrays["stats"], arrays["status"] = snap["tracking"]
-        if self.scene.particle_id is not None:  # rows in stored order (Scene.reordered)
-            arrays["particle_id"] = self.scene.particle_id
         arrays["energy"] = np.array(self.energy[:snap["energy"]], dtype=np.float64).reshape(-1, 2)
         arrays["trace"] = np.concatenate(self.trace_chunks[:snap["trace"]]) if snap["trace"] else self.no_trace
         series = self.on_frame.checkpoint_state() if self.saves_series else None
@@ -1436,6 +1513,7 @@ class _RunLoop:
         That state is rebuilt from the last copy (``good``) by replaying the steps
         in between: runs are deterministic, so the replay gives it bit for bit."""
         sim, state, good, checked = self.sim, self.state, self.good, self.checked
+        sim.use_order(state, good["arrays"].get("particle_id"))
         state.restore(good["arrays"])
         for live, saved in zip((self.probe, self.stats, self.status), good["tracking"]):
             live[:] = saved
@@ -1475,9 +1553,10 @@ class _RunLoop:
         if on_grid:
             self.loop["gravity_work_max"] = work_max
         if fault is not None:
-            touching = self.blowup.contacts_of(self.state, fault.particle)
+            touching = self.blowup.contacts_of(self.state, fault.particle, self.scene.scenario_index)
             self.fail(f"blow-up ({fault.what}) at step {step} (t = {at_time:.6g} s): {fault.detail}; "
-                      f"particle {fault.particle} touches " + (", ".join(touching) if touching else "nothing"))
+                      f"particle {self.scene.scenario_index(fault.particle)} touches "
+                      + (", ".join(touching) if touching else "nothing"))
 
     def check_status(self, steps):
         """A fault the kernel stopped for (a non-finite force, a sphere through a wall)."""

@@ -44,14 +44,58 @@ def spatial_order(position: np.ndarray, cell_size: float) -> np.ndarray:
     return np.lexsort((cell[:, 0], cell[:, 1], cell[:, 2])).astype(np.int64)
 
 
+# mean_step looks at this many consecutive pairs at most, evenly spread (at a list rebuild
+# of 1,000,000 particles: 1 ms, not the 30 ms of every pair)
+STEP_SAMPLES = 65_536
+
+
 def mean_step(position: np.ndarray) -> float:
-    """The mean distance (m) between particles stored one after the other."""
-    if position.shape[0] < 2:
+    """The mean distance (m) between particles stored one after the other (of up to
+    STEP_SAMPLES pairs, evenly spread)."""
+    n = position.shape[0]
+    if n < 2:
         return 0.0
-    return float(np.linalg.norm(np.diff(position, axis=0), axis=1).mean())
+    first = np.arange(0, n - 1, max(1, (n - 1) // STEP_SAMPLES))
+    return float(np.linalg.norm(position[first + 1] - position[first], axis=1).mean())
 
 
 def scattered(position: np.ndarray, order: np.ndarray) -> bool:
     """Whether the particles' own order is far less local than ``order``: consecutive
     particles SCATTERED_RATIO times further apart on average."""
     return mean_step(position) > SCATTERED_RATIO * mean_step(position[order])
+
+
+def permute_rows(offsets: np.ndarray, order: np.ndarray, *columns: np.ndarray):
+    """A CSR list (``offsets``, one row per particle, and ``columns`` with one row per
+    entry) with its particle rows put in ``order`` (``order[k]``: the old row that becomes
+    row k): (new offsets, the columns' entries in the new rows' order)."""
+    counts = np.diff(offsets)[order]
+    new_offsets = np.zeros(offsets.shape[0], dtype=offsets.dtype)
+    np.cumsum(counts, out=new_offsets[1:])
+    entries = np.repeat(offsets[:-1][order] - new_offsets[:-1], counts) + np.arange(new_offsets[-1])
+    return new_offsets, tuple(column[entries] for column in columns)
+
+
+def exchange_pairs(offsets: np.ndarray, partners: np.ndarray, history: np.ndarray, overlap: np.ndarray,
+                   order: np.ndarray, exchange_signs: np.ndarray):
+    """The half list of pairs (i, j > i: row i lists j, ascending) with its particles
+    renumbered by ``order`` (``order[k]``: the old particle that becomes k): each pair
+    listed again under the smaller of its new numbers, rows ascending, and the history of a
+    pair whose spheres' order turned over multiplied by ``exchange_signs`` (the law's
+    HistorySlot.exchange per history float: the contact as seen from its other sphere).
+    Returns (offsets, partners, history, overlap) of the renumbered list."""
+    n = offsets.shape[0] - 1
+    new_number = np.empty(n, dtype=np.int64)
+    new_number[order] = np.arange(n)
+    first = new_number[np.repeat(np.arange(n), np.diff(offsets))]
+    second = new_number[partners]
+    turned = first > second
+    first, second = np.where(turned, second, first), np.where(turned, first, second)
+    entries = np.lexsort((second, first))
+    new_offsets = np.zeros(n + 1, dtype=offsets.dtype)
+    np.cumsum(np.bincount(first, minlength=n), out=new_offsets[1:])
+    new_history = history[entries]
+    turned = turned[entries]
+    # + 0.0: a zero slot stays +0.0 (a row of -0.0 would read as a contact's history)
+    new_history[turned] = new_history[turned] * exchange_signs + 0.0
+    return new_offsets, second[entries].astype(partners.dtype), new_history, overlap[entries]

@@ -814,8 +814,8 @@ class SimulationFrames:
         from minidem.geometry.walls import display_meshes
 
         # frames in the scenario's order, whatever order the engine stores the particles in
-        # (Scene.reordered): row k of every frame is particle k of the scenario
-        self.stored = simulation.scene
+        # (Scene.reordered; a run may sort them again): row k of every frame is particle k
+        self.simulation = simulation
         scene = simulation.input_scene
         self.scene = scene
         self.writer = VTKSeriesWriter(directory, "particles")
@@ -828,7 +828,7 @@ class SimulationFrames:
 
     def __call__(self, time_s, state) -> None:
         pairs, normal_force = state.contact_pairs() if self.scene.vtk_contacts else (None, None)
-        stored = self.stored
+        stored = self.simulation.scene
         if pairs is not None and stored.particle_id is not None:
             pairs = stored.particle_id[pairs]
         ordered = stored.in_scenario_order

@@ -329,7 +329,40 @@ class Battery:
                   "rotates and shifts the result"),
         ]
 
-    def run_pair(self, rotation: np.ndarray, shift: np.ndarray, end_time: float | None = None):
+    def exchange(self) -> list[Check]:
+        """The oblique collision of :meth:`pair_collision` on the multi-particle path, every
+        pair turned over at every list build (the particles' order reversed, each contact
+        carried to the pair seen from its other sphere with the law's HistorySlot.exchange
+        signs), against the same run left in its order."""
+        name = "history read from the other sphere (HistorySlot.exchange)"
+        source = "a contact's force does not depend on which of its spheres is the first (docs/writing-a-contact-law.md)"
+        if not self.law.history_size:
+            return [Check(name, None, "skipped: the law keeps no history", "-", "-")]
+        signs = self.law.exchange_signs
+        if signs is None:
+            undeclared = ", ".join(slot.name for slot in self.law.history if slot.exchange is None)
+            return [Check(name, None, f"not declared for slot(s) {undeclared}: a run with this law keeps the order "
+                          "it starts in (never sorted in space again as its particles mix)", "-", source)]
+        try:
+            first = self.run_pair(np.eye(3), np.zeros(3))
+        except laws.LawError as exc:
+            return [Check(name, None, f"not run: {exc}", "-", "-")]
+        end_time = 1.05 * first.last_separation_time if first.separated else first.time
+        plain, _ = self.run_pair(np.eye(3), np.zeros(3), end_time=end_time, turning=False)
+        turned, sorts = self.run_pair(np.eye(3), np.zeros(3), end_time=end_time, turning=True)
+        speed, spin = float(np.abs(plain.velocity).max()), float(np.abs(plain.angular_velocity).max())
+        difference = max(float(np.abs(turned.velocity - plain.velocity).max()) / speed,
+                         float(np.abs(turned.angular_velocity - plain.angular_velocity).max()) / spin)
+        return [Check(name, difference <= 1e-9 and sorts >= 10,
+                      f"max relative difference {difference:.2e} over {sorts} reversals (the run: the contact)",
+                      "<= 1e-9 of the speed and spin (round-off), at least 10 reversals", source)]
+
+    def run_pair(self, rotation: np.ndarray, shift: np.ndarray, end_time: float | None = None,
+                 turning: bool | None = None):
+        """The oblique pair collision, rotated and shifted. ``turning`` (True or False): on
+        the multi-particle path instead (15 more spheres far off, a list rebuild every few
+        steps), with every pair turned over at every rebuild when True; returns (the run,
+        how many times it was sorted)."""
         radii = (0.025, 0.02)
         mass = [r ** 3 for r in radii]  # same density: the mass ratio
         normal = np.array([1.0, 0.5, -0.3]) / np.linalg.norm([1.0, 0.5, -0.3])
@@ -348,18 +381,32 @@ class Battery:
         contact = copy.deepcopy(self.base["contact"])
         if self.has_parameter("calibration_speed") and contact.get("calibration_speed") is None:
             contact["calibration_speed"] = self.base["impact"]["speed"]  # as the impacts calibrate
+        material = next(iter(self.base["materials"]))
         data = {
             "materials": copy.deepcopy(self.base["materials"]),
             "contact": contact,
             "particles": [{"position": (rotation @ position[i] + shift).tolist(),
                            "velocity": (rotation @ velocity[i]).tolist(),
                            "angular_velocity": (rotation @ spin[i]).tolist(), "radius": radii[i],
-                           "material": next(iter(self.base["materials"]))} for i in range(2)],
+                           "material": material} for i in range(2)],
             "run": run,
             "output": {"vtk": False},
         }
+        if turning is not None:
+            # more than simulation.PARALLEL_ABOVE spheres: the multi-particle path, whose
+            # lists are rebuilt (a 2 um skin: every ~30 steps at 5 m/s) and may be sorted
+            data["particles"] += [{"position": [1.0 + 0.1 * k, 1.0, 1.0], "radius": radii[1], "material": material}
+                                  for k in range(simulation.PARALLEL_ABOVE - 1)]
+            run["skin"] = 2e-6
         scene = scenario.build_scene(data, source=f"<verify {self.law.name}: sphere-sphere>", output_directory="-")
-        return simulation.Simulation(scene).run()
+        sim = simulation.Simulation(scene)
+        if turning is None:
+            return sim.run()
+        if turning:
+            sim.exchange_signs, sim.resort_ratio = np.array(self.law.exchange_signs), 0.0
+            sim.space_order = lambda position: np.arange(position.shape[0])[::-1].copy()
+        result = sim.run()
+        return result, sim.state.sorts
 
 
 def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -375,7 +422,7 @@ def run_battery(law_name: str, overrides: list[str] = (), out_directory: Path | 
     checks += battery.adhesion()
     comparison, curves = battery.against_hmd()
     loop, trace = battery.first_loop()
-    checks += comparison + loop + battery.convergence() + battery.pair_collision()
+    checks += comparison + loop + battery.convergence() + battery.pair_collision() + battery.exchange()
     if out_directory is not None:
         _write_report(out_directory, battery, checks, curves, trace)
     return checks

@@ -138,7 +138,7 @@ JKR = ContactPart(
                 "critical separation 3/4 (pi^2 gamma^2 R*/E*^2)^(1/3); pull-off 3/2 pi gamma R*",
     parameters=(SURFACE_ENERGY,),
     constants=("effective_modulus", "surface_energy"),
-    history=(HistorySlot("formed", "1 while the JKR contact is formed (touched, not yet broken)"),),
+    history=(HistorySlot("formed", "1 while the JKR contact is formed (touched, not yet broken)", exchange=1),),
     prepare=lambda pair, params, prepared: {"effective_modulus": pair.effective_modulus,
                                             "surface_energy": params["surface_energy"]},
     function=jkr_normal,

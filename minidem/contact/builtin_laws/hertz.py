@@ -571,29 +571,32 @@ def _law(name, description, force, history, reference, aliases=(), extra=()):
     )
 
 
-_FORCE_SLOT = (HistorySlot("tangential_force", "spring force in the tangent plane (N)", vector=True),)
-_DISPLACEMENT_SLOT = (HistorySlot("tangential_displacement", "total tangential displacement (m)", vector=True),)
+_FORCE_SLOT = (HistorySlot("tangential_force", "spring force in the tangent plane (N)", vector=True, exchange=-1),)
+_DISPLACEMENT_SLOT = (HistorySlot("tangential_displacement", "total tangential displacement (m)", vector=True,
+                                  exchange=-1),)
 
 HMD = _law(
     "hmd",
     "Hertz + Mindlin-Deresiewicz, Thornton's incremental form with load-reversal memory (eqs 15-24)",
     hmd_force,
     _FORCE_SLOT + (
-        HistorySlot("loading_axis", "unit loading direction in the tangent plane", vector=True),
-        HistorySlot("ft_star", "load-reversal point Ft* along the axis (N)"),
-        HistorySlot("ft_2star", "load-reversal point Ft** along the axis (N)"),
-        HistorySlot("mode", "0 virgin, 1 loading, 2 unloading, 3 reloading"),
-        HistorySlot("sliding", "1 while the force is on the Coulomb limit"),
-        HistorySlot("tangential_displacement", "total tangential displacement (m)", vector=True),
-        HistorySlot("special", "1 while theta = 1 under eqs 19/24 (special_case 1-3)"),
+        HistorySlot("loading_axis", "unit loading direction in the tangent plane", vector=True, exchange=-1),
+        HistorySlot("ft_star", "load-reversal point Ft* along the axis (N)", exchange=1),
+        HistorySlot("ft_2star", "load-reversal point Ft** along the axis (N)", exchange=1),
+        HistorySlot("mode", "0 virgin, 1 loading, 2 unloading, 3 reloading", exchange=1),
+        HistorySlot("sliding", "1 while the force is on the Coulomb limit", exchange=1),
+        HistorySlot("tangential_displacement", "total tangential displacement (m)", vector=True, exchange=-1),
+        HistorySlot("special", "1 while theta = 1 under eqs 19/24 (special_case 1-3)", exchange=1),
         HistorySlot("special_start_displacement", "total displacement where the special state began (m)",
-                    vector=True),
-        HistorySlot("special_start_force", "tangential force where the special state began (N)", vector=True),
-        HistorySlot("special_start_normal_force", "normal force where the special state began (N)"),
-        HistorySlot("special_deficit", "displacement owed before the loading curve is met (m; special_case 4)"),
+                    vector=True, exchange=-1),
+        HistorySlot("special_start_force", "tangential force where the special state began (N)", vector=True,
+                    exchange=-1),
+        HistorySlot("special_start_normal_force", "normal force where the special state began (N)", exchange=1),
+        HistorySlot("special_deficit", "displacement owed before the loading curve is met (m; special_case 4)",
+                    exchange=1),
         HistorySlot("previous_increment", "the previous step's tangential displacement increment (m)",
-                    vector=True),
-        HistorySlot("previous_normal_force", "the previous step's normal force, with a dashpot (N)"),
+                    vector=True, exchange=-1),
+        HistorySlot("previous_normal_force", "the previous step's normal force, with a dashpot (N)", exchange=1),
     ),
     "Thornton, Cummins & Cleary (2011) section 3.1; Thornton & Yin (1991)",
     aliases=("hertz_mindlin_deresiewicz",),

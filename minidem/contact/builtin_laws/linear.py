@@ -94,7 +94,7 @@ LS = ContactLaw(
         RESTITUTION,
     ),
     constants=("normal_stiffness", "tangential_stiffness", "friction", "damping_ratio"),
-    history=(HistorySlot("tangential_force", "spring force in the tangent plane (N)", vector=True),),
+    history=(HistorySlot("tangential_force", "spring force in the tangent plane (N)", vector=True, exchange=-1),),
     prepare=prepare_linear,
     force=linear_force,
     contact_time=linear_contact_time,

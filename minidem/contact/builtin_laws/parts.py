@@ -138,7 +138,7 @@ TSUJI = ContactPart(
 
 
 # -- tangential -----------------------------------------------------------------------
-_FORCE_SLOT = (HistorySlot("tangential_force", "spring force in the tangent plane (N)", vector=True),)
+_FORCE_SLOT = (HistorySlot("tangential_force", "spring force in the tangent plane (N)", vector=True, exchange=-1),)
 
 
 def _prepare_linear_history(pair, params, prepared):

@@ -101,8 +101,8 @@ WALTON_BRAUN = ContactLaw(
     ),
     constants=("loading_stiffness", "unloading_stiffness", "tangential_stiffness", "friction"),
     history=(
-        HistorySlot("tangential_force", "spring force in the tangent plane (N)", vector=True),
-        HistorySlot("max_overlap", "largest overlap reached in this contact, delta_max (m)"),
+        HistorySlot("tangential_force", "spring force in the tangent plane (N)", vector=True, exchange=-1),
+        HistorySlot("max_overlap", "largest overlap reached in this contact, delta_max (m)", exchange=1),
     ),
     prepare=prepare,
     force=walton_braun_force,
