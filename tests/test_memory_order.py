@@ -109,29 +109,40 @@ def test_files_of_a_stored_order_name_each_row_and_frames_are_in_the_scenario_or
     assert np.array_equal(np.asarray(first.points), lattice_positions()[shuffle])
 
 
-def test_a_stored_order_resumes_bit_for_bit(tmp_path, monkeypatch, shuffle):
-    scene = lambda: settle(lattice_positions()[shuffle], end_steps=600).scene()  # noqa: E731
+def interrupted_then_resumed(tmp_path, monkeypatch, scene, copies: int, interval: float, chunk_steps: int):
+    """Ctrl-C (SIGINT, held until the copy is whole) after ``copies`` copies of the last
+    good state, with checkpoints every ``interval`` s; then --resume. Returns (the run left
+    alone, the resumed run, the checkpoint's arrays, the state's sorts at the last copy)."""
     reference = simulation.Simulation(scene()).run()
-    original, copies = simulation.State.capture, []
+    original, sorts = simulation.State.capture, []
 
-    def capture(self, into=None):  # Ctrl-C after the third copy of the state
+    def capture(self, into=None):
         out = original(self, into)
-        copies.append(1)
-        if len(copies) == 3:
+        sorts.append(self.sorts)
+        if len(sorts) == copies:
             signal.raise_signal(signal.SIGINT)
         return out
 
     monkeypatch.setattr(simulation.State, "capture", capture)
     with pytest.raises(KeyboardInterrupt):
-        simulation.Simulation(scene()).run(checkpoints=checkpoint.Policy(tmp_path, interval=2e-3), chunk_steps=100)
+        simulation.Simulation(scene()).run(checkpoints=checkpoint.Policy(tmp_path, interval=interval),
+                                           chunk_steps=chunk_steps)
     monkeypatch.setattr(simulation.State, "capture", original)
     arrays, meta = checkpoint.read(tmp_path / checkpoint.CHECKPOINT)
-    assert 0 < meta["step"] < 600 and "particle_id" in arrays
+    assert 0 < meta["step"] < reference.steps
     sim = simulation.Simulation(scene())
     resumed = sim.run(resume_from=checkpoint.load_for_resume(sim, tmp_path))
     assert resumed.steps == reference.steps
     for name in ("position", "velocity", "angular_velocity", "force"):
         assert np.array_equal(getattr(resumed, name), getattr(reference, name)), name
+    return arrays, sorts[-1]
+
+
+def test_a_stored_order_resumes_bit_for_bit(tmp_path, monkeypatch, shuffle):
+    arrays, _ = interrupted_then_resumed(
+        tmp_path, monkeypatch, lambda: settle(lattice_positions()[shuffle], end_steps=600).scene(), copies=3,
+        interval=2e-3, chunk_steps=100)
+    assert "particle_id" in arrays
 
 
 def test_a_fault_names_the_particle_as_the_scenario_numbers_it(shuffle):
@@ -205,28 +216,11 @@ def test_a_run_sorts_again_only_when_the_particles_have_mixed(monkeypatch):
 
 def test_files_written_after_a_sort_resume_bit_for_bit(tmp_path, monkeypatch):
     reversing_every_build(monkeypatch)
-    scene = lambda: minidem.load("scenarios/settle.toml", PILE).scene()  # noqa: E731
-    reference = simulation.Simulation(scene()).run()
-    original, copies = simulation.State.capture, []
-
-    def capture(self, into=None):  # Ctrl-C after the fourth copy of the state
-        out = original(self, into)
-        copies.append(self.sorts)
-        if len(copies) == 4:
-            signal.raise_signal(signal.SIGINT)
-        return out
-
-    monkeypatch.setattr(simulation.State, "capture", capture)
-    with pytest.raises(KeyboardInterrupt):
-        simulation.Simulation(scene()).run(checkpoints=checkpoint.Policy(tmp_path, interval=0.02), chunk_steps=500)
-    monkeypatch.setattr(simulation.State, "capture", original)
-    assert copies[-1] >= 1  # the checkpoint holds a state sorted during the run
-    arrays, _ = checkpoint.read(tmp_path / checkpoint.CHECKPOINT)
-    assert not np.array_equal(arrays["particle_id"], np.arange(300))
-    sim = simulation.Simulation(scene())
-    resumed = sim.run(resume_from=checkpoint.load_for_resume(sim, tmp_path))
-    for name in ("position", "velocity", "angular_velocity", "force"):
-        assert np.array_equal(getattr(resumed, name), getattr(reference, name)), name
+    arrays, sorts = interrupted_then_resumed(
+        tmp_path, monkeypatch, lambda: minidem.load("scenarios/settle.toml", PILE).scene(), copies=4, interval=0.02,
+        chunk_steps=500)
+    # the checkpoint holds a state sorted during the run, in that order
+    assert sorts >= 1 and not np.array_equal(arrays["particle_id"], np.arange(300))
 
 
 @pytest.mark.parametrize("law, overrides", [
