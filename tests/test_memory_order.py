@@ -90,7 +90,7 @@ def test_a_scattered_scene_runs_the_same_physics_in_space_order(shuffle):
 
 
 def test_files_of_a_stored_order_name_each_row_and_frames_are_in_the_scenario_order(tmp_path, shuffle):
-    scenario = settle(lattice_positions()[shuffle]).output(vtk=True, interval=0.01)
+    scenario = settle(lattice_positions()[shuffle]).output(vtk=True, interval=0.01, contacts=True)
     result = minidem.run(scenario, out=tmp_path / "out")
     output = minidem.open_results(tmp_path / "out")
     state = output.final_state
@@ -107,6 +107,13 @@ def test_files_of_a_stored_order_name_each_row_and_frames_are_in_the_scenario_or
     assert np.array_equal(last.point_data["particle_id"], np.arange(N))
     first = output.series[0]
     assert np.array_equal(np.asarray(first.points), lattice_positions()[shuffle])
+    # the contact network's lines join the scenario's particles that touch (centres closer
+    # than the 2 mm diameter): its stored pairs renamed as the scenario numbers them
+    network = output.contacts[len(output.contacts.times) - 1]
+    pairs = network.cells_dict[3]  # VTK_LINE
+    assert pairs.shape[0] > 1000
+    distance = np.linalg.norm(result.position[pairs[:, 0]] - result.position[pairs[:, 1]], axis=1)
+    assert distance.max() < 2e-3
 
 
 def interrupted_then_resumed(tmp_path, monkeypatch, scene, copies: int, interval: float, chunk_steps: int):
