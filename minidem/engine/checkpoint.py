@@ -73,8 +73,9 @@ class Policy:
 def fingerprint(sim) -> str:
     """Hash of everything that decides a run's trajectory: the scenario as given (after
     ``--set``, without the keys in ``_FREE_KEYS``), the particles and walls it produced,
-    and the time step."""
-    scene = sim.scene
+    and the time step. The scenario's own order, not the order a run stores them in (which
+    a run may change, Simulation.sort_in_space)."""
+    scene = sim.input_scene
     raw = json.loads(json.dumps(scene.raw, default=str))
     for section, key in _FREE_KEYS:
         if isinstance(raw.get(section), dict):

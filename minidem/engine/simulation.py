@@ -792,16 +792,15 @@ class Simulation:
         # sorted again during the run (rebuild) only when the law says how a contact's
         # history reads from its other sphere: a sort can exchange the two
         self.exchange_signs = np.array(signs) if self.sorts and self.pairs and signs is not None else None
+        self.skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
         # cells of half the list cutoff (LAMMPS' default bin for its sort): a jittered
         # lattice has one sphere a cell and sorts back to its fill's layers and rows
-        skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
-        self.sort_cell = 0.5 * (2.0 * float(scene.radius.max()) + skin)
+        self.sort_cell = 0.5 * (2.0 * float(scene.radius.max()) + self.skin)
         self.resort_ratio = RESORT_RATIO
         if self.sorts:
             order = self.space_order(scene.position)
             if scattered(scene.position, order):
                 self.scene = scene = scene.reordered(order)
-        self.skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
         # what the values imply (constants, contact time, dt, step count), checked before
         # the kernel is compiled: out of float64 range is bad input naming the keys
         with derived.arithmetic(scene, "deriving the contact constants and the time step"):
@@ -1696,7 +1695,8 @@ class _RunLoop:
         return RunResult(
             scene=scene, law=sim.law, constants=sim.constants_by_pair, position=ordered(state.position),
             velocity=ordered(state.velocity), angular_velocity=ordered(state.angular_velocity),
-            initial_velocity=scene.velocity, initial_angular_velocity=scene.angular_velocity, steps=steps, dt=sim.dt, dt_reason=sim.dt_reason,
+            initial_velocity=scene.velocity, initial_angular_velocity=scene.angular_velocity, steps=steps, dt=sim.dt,
+            dt_reason=sim.dt_reason,
             time=self.start_time + steps * sim.dt, separated=separated, first_contact_time=stats[0],
             last_separation_time=stats[1], max_overlap=stats[2], peak_normal_force=stats[3],
             peak_tangential_force=stats[4], wall_time=wall_time,
