@@ -233,11 +233,13 @@ def test_files_written_after_a_sort_resume_bit_for_bit(tmp_path, monkeypatch):
     assert sorts >= 1 and not np.array_equal(arrays["particle_id"], np.arange(300))
 
 
+# (the rolling and twisting couples: settle.toml's pile above; every other shipped law and
+# part passes the same check, `minidem verify`, docs/multi-particle.md: each case costs the
+# suite two kernels' compile, ~40 s for a combination no other test compiles)
 @pytest.mark.parametrize("law, overrides", [
     ("hmd", []),  # 26 floats: forces, displacements and directions (-1), reversal points, modes, flags (+1)
     ("jkr+mindlin", ["contact.surface_energy=1.0"]),  # an adhesive part's flag (+1), contacts beyond touch
-    ("hertz+tsuji+mindlin+sds_rolling+marshall", ["contact.rolling_stiffness=1e5", "contact.rolling_friction=0.1"]),
-], ids=["hmd", "jkr+mindlin", "sds_rolling+marshall"])
+], ids=["hmd", "jkr+mindlin"])
 def test_verify_turns_every_contact_over_and_finds_the_same_collision(law, overrides):
     # minidem verify's check: the oblique collision of two spinning spheres on the
     # multi-particle path, every pair turned over at every list build, gives the same
