@@ -6,6 +6,7 @@ state files say where each stored row came from (particle_id) and resume bit for
 import dataclasses
 import signal
 
+import numba
 import numpy as np
 import pytest
 
@@ -270,3 +271,25 @@ def test_a_law_that_does_not_declare_its_exchange_is_never_sorted_during_a_run(m
     monkeypatch.setattr(simulation, "REORDER_MIN_PARTICLES", 0)
     sim = simulation.Simulation(minidem.load("scenarios/settle.toml", PILE).scene())
     assert sim.exchange_signs is None
+
+
+def test_a_run_sorted_at_every_build_gives_the_same_bits_on_one_and_two_threads(monkeypatch):
+    # the scene of test_multiparticle's test_same_bits_on_one_and_two_threads (its kernel),
+    # every pair turned over at every list build: the sort depends on the state alone, never
+    # on the thread count, so the two-thread run is the one-thread run bit for bit
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("needs two threads")
+    reversing_every_build(monkeypatch)
+    monkeypatch.setattr(simulation, "PARALLEL_MIN_PARTICLES", 0)
+    monkeypatch.setattr(simulation.LoopThreads, "PROBE_FIRST", 10**9)
+    overrides = ["walls.0.upper=[0.02, 0.02, 1.0]", "fill.0.upper=[0.02, 0.02, 1.0]", "fill.0.count=200",
+                 "run.end_time=0.012", "output.vtk=false"]
+    runs, sims = [], []
+    for threads in (1, 2):
+        sims.append(simulation.Simulation(minidem.load("scenarios/bench/settle.toml",
+                                                       overrides + [f"run.threads={threads}"]).scene()))
+        runs.append(sims[-1].run())
+    assert runs[0].threads == 1 and runs[1].threads == 2 and runs[1].contacts > 50
+    assert sims[0].state.sorts == sims[1].state.sorts >= 2
+    for name in ("position", "velocity", "angular_velocity", "energy"):
+        assert np.array_equal(getattr(runs[0], name), getattr(runs[1], name)), name
