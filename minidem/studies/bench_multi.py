@@ -362,6 +362,15 @@ def section(results: dict, command: str, stamp, heading: str = "## Multi-particl
 
 
 ORDER_SIZES, ORDER_STEPS = (20_000, 200_000, 1_000_000), 400
+# A run below this many particle-steps lasts under a second, where the VM's jitter (runs of
+# 400 steps at 20,000 spread 1.96-2.89e7 particle-steps/s) hides the order: more rounds there
+ORDER_RESOLVED_PARTICLE_STEPS = 80_000_000
+ORDER_MOST_REPEATS = 15
+
+
+def order_repeats(repeats: int, n: int, steps: int) -> int:
+    """Rounds at N: ``repeats``, more for runs too short to resolve (at most ORDER_MOST_REPEATS)."""
+    return max(repeats, min(ORDER_MOST_REPEATS, repeats * ORDER_RESOLVED_PARTICLE_STEPS // (n * steps)))
 
 
 def memory_order(repeats: int, command: str, stamp, echo=print, sizes=ORDER_SIZES, steps=None) -> str:
@@ -373,12 +382,13 @@ def memory_order(repeats: int, command: str, stamp, echo=print, sizes=ORDER_SIZE
     run_minidem(6_000, JITTER["jitter"], 1, steps=10, order="shuffled")
     load = os.getloadavg()
     rows = {}
+    rounds = {n: order_repeats(repeats, n, steps) for n in sizes}
     for n in sizes:
         runs = {order: [] for order in ORDERS}
-        for repeat in range(repeats):
+        for repeat in range(rounds[n]):
             for order in ORDERS:
                 runs[order].append(run_minidem(n, JITTER["jitter"], 1, steps, order=order))
-            echo(f"bench: memory order N={n} repeat {repeat + 1}/{repeats}: "
+            echo(f"bench: memory order N={n} repeat {repeat + 1}/{rounds[n]}: "
                  + ", ".join(f"{order} {v[-1]['rate']:.3g}/s" for order, v in runs.items()))
         rows[n] = runs
     lines = ["## Memory order against N", "", stamp(command),
@@ -386,7 +396,8 @@ def memory_order(repeats: int, command: str, stamp, echo=print, sizes=ORDER_SIZE
              f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}.", "",
              f"Scene: `scenarios/bench/settle.toml`, jitter, {steps:,} steps from rest (the same phase at every N), "
              "one thread, a fresh process a run, the three orders interleaved, medians of "
-             f"{repeats}. 'fill': the particles as the lattice fill makes them (x fastest, then y, then z: spatial); "
+             + ", ".join(f"{rounds[n]} at {n:,}" for n in sizes) + " (more rounds where a run lasts under a "
+             "second). 'fill': the particles as the lattice fill makes them (x fastest, then y, then z: spatial); "
              "'shuffled': the same particles given in a random order (seeded), which minidem stores sorted in "
              "space (docs/multi-particle.md, 'The order particles are stored in'); 'shuffled, as given': the same "
              "with that sort turned off. ns a particle-step = the step loop's wall time / (N x steps).", "",
