@@ -40,7 +40,9 @@ from minidem.files import atomic_write
 # 2: pair_reaction_in_use (which reaction rows hold a touching pair's reaction)
 # 3: plane_history and plane_overlap per near-plane entry (State.list_near_planes), not
 #    per (sphere, plane)
-FORMAT = 3
+# 4: sorted_step, and particle_id when the particles are stored in another order than the
+#    scenario's (Simulation.sort_in_space)
+FORMAT = 4
 CHECKPOINT = "checkpoint.npz"
 FINAL_STATE = "final_state.npz"
 LAST_GOOD = "last_good.npz"

@@ -516,6 +516,7 @@ class State:
         self.force = np.zeros((n, 3))
         self.torque = np.zeros((n, 3))
         self.follow_scene(scene)
+        self.input_radius = sim.input_scene.radius  # the scenario's order (lists_of)
         # the mean distance of consecutive particles when they were last sorted (or at the
         # start): Simulation.rebuild sorts them again when they drift far from it
         self.sorted_step, self.sorts = mean_step(self.position), 0
@@ -587,13 +588,14 @@ class State:
             neighbours.carry_history(*self.planes[5:], *self.planes[3:5], offsets, planes, history, overlap)
         self.planes = (wall_point, wall_normal, wall_material, history, overlap, offsets, planes)
 
-    def build_lists(self, position: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    def build_lists(self, position: np.ndarray | None = None, radius: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """The Verlet lists at ``position`` (default position_at_build), by their names in a
         capture (_LISTS): the pairs closer than their radii plus ``pair_cutoff`` (partners
         int32 below 2**31 entries, ``pair_index_type``) and the mesh triangles within
         ``mesh_skin``. What :meth:`Simulation.rebuild` makes, and :meth:`restore` makes
         again, bit for bit."""
-        radius, n = self.particles[8], self.position.shape[0]
+        n = self.position.shape[0]
+        radius = self.particles[8] if radius is None else radius
         position = self.position_at_build if position is None else position
         lists = {"pair_offsets": np.zeros(n + 1, dtype=np.int64),
                  "pair_neighbours": np.zeros(0, dtype=pair_index_type(0, n)),
@@ -614,7 +616,11 @@ class State:
         list: an interrupt's checkpoint)."""
         if self.pairs is not None and np.array_equal(arrays["position_at_build"], self.position_at_build):
             return {name: array for name, array in self.live_arrays().items() if name in _LISTS}
-        return self.build_lists(arrays["position_at_build"])
+        # with the radii in the order the capture was taken in (a run may have sorted the
+        # particles since: Simulation.sort_in_space)
+        stored = arrays.get("particle_id")
+        return self.build_lists(arrays["position_at_build"],
+                                self.input_radius if stored is None else self.input_radius[stored])
 
     def near_plane_list(self) -> tuple[np.ndarray, np.ndarray]:
         """(offsets, planes): the planes near each sphere at position_at_build, CSR."""
@@ -787,7 +793,9 @@ class Simulation:
         # stored order; the results (RunResult, the VTK frames) come back in the scenario's.
         # Never for the serial, tracked loop: its probe is particle 0 of the scenario.
         self.input_scene = scene
-        self.sorts = self.parallel and scene.n_particles >= REORDER_MIN_PARTICLES and scene.particle_id is None
+        # (nor for a scene that records a trace: trace.csv follows the particle stored first)
+        self.sorts = (self.parallel and scene.n_particles >= REORDER_MIN_PARTICLES and scene.particle_id is None
+                      and not scene.trace)
         signs = self.law.exchange_signs
         # sorted again during the run (rebuild) only when the law says how a contact's
         # history reads from its other sphere: a sort can exchange the two
@@ -801,6 +809,8 @@ class Simulation:
             order = self.space_order(scene.position)
             if scattered(scene.position, order):
                 self.scene = scene = scene.reordered(order)
+        # the order every run starts in (a run may sort the particles again: Simulation.scene)
+        self.start_scene = self.scene
         # what the values imply (constants, contact time, dt, step count), checked before
         # the kernel is compiled: out of float64 range is bad input naming the keys
         with derived.arithmetic(scene, "deriving the contact constants and the time step"):
@@ -1118,7 +1128,11 @@ class Simulation:
         meshes = state.meshes
         offsets, (candidates, history, overlap) = permute_rows(meshes[2], order, meshes[3], meshes[4], meshes[5])
         state.meshes = meshes[:2] + (offsets, candidates, history, overlap)
-        state.pairs = exchange_pairs(*state.pairs[:4], order, self.exchange_signs) + (None,) * 5
+        # the old list's reactions and transposed index go first (rebuilt after the list):
+        # the renumbering holds the old list and the new one, not the whole pair tuple twice
+        old, state.pairs = state.pairs[:4], None
+        state.pairs = exchange_pairs(*old, order, self.exchange_signs) + (None,) * 5
+        del old
         state.first_partner = None
         state.sorted_step = mean_step(state.position)
         state.sorts += 1
@@ -1294,6 +1308,7 @@ class _RunLoop:
         from minidem.engine import blowup, checkpoint
 
         self.sim, self.kernel = sim, sim.kernel
+        sim.scene = sim.start_scene  # a Simulation run again starts from its start order
         self.blowup, self.checkpoint = blowup, checkpoint
         self.chunk_steps, self.progress, self.on_frame, self.policy = chunk_steps, progress, on_frame, policy
         scene = self.scene
@@ -1424,7 +1439,7 @@ class _RunLoop:
         # beside the kernel (nothing is started when they are cached); or, when a helper
         # is compiling this scene's kernel already (started by `minidem run` beside the
         # scene's check), this process compiles them meanwhile
-        kernel_helper = warmup.kernel_helper(self.scene)
+        kernel_helper = warmup.kernel_helper(sim.input_scene)  # started for the scene as read
         helper = warmup.start(sim.pairs, meshes, sim.law) if kernel_helper is None else kernel_helper
         try:
             # the one compilation of this kernel, reported against the law that caused it; a

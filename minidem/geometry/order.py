@@ -85,17 +85,26 @@ def exchange_pairs(offsets: np.ndarray, partners: np.ndarray, history: np.ndarra
     HistorySlot.exchange per history float: the contact as seen from its other sphere).
     Returns (offsets, partners, history, overlap) of the renumbered list."""
     n = offsets.shape[0] - 1
-    new_number = np.empty(n, dtype=np.int64)
-    new_number[order] = np.arange(n)
-    first = new_number[np.repeat(np.arange(n), np.diff(offsets))]
+    # in the partners' own integer type (int32 below 2**31 particles): the renumbering's
+    # temporaries are a few per list entry, at the peak of a large run's rebuild
+    new_number = np.empty(n, dtype=partners.dtype)
+    new_number[order] = np.arange(n, dtype=partners.dtype)
+    first = np.repeat(new_number, np.diff(offsets))
     second = new_number[partners]
     turned = first > second
-    first, second = np.where(turned, second, first), np.where(turned, first, second)
+    smaller = np.minimum(first, second)
+    np.maximum(first, second, out=second)
+    first = smaller
+    del smaller
     entries = np.lexsort((second, first))
     new_offsets = np.zeros(n + 1, dtype=offsets.dtype)
     np.cumsum(np.bincount(first, minlength=n), out=new_offsets[1:])
+    del first
     new_history = history[entries]
     turned = turned[entries]
-    # + 0.0: a zero slot stays +0.0 (a row of -0.0 would read as a contact's history)
-    new_history[turned] = new_history[turned] * exchange_signs + 0.0
-    return new_offsets, second[entries].astype(partners.dtype), new_history, overlap[entries]
+    for column in np.flatnonzero(np.asarray(exchange_signs) < 0):
+        values = new_history[:, column]
+        np.negative(values, out=values, where=turned)
+        # + 0.0: a zero slot stays +0.0 (a row of -0.0 would read as a contact's history)
+        np.add(values, 0.0, out=values, where=turned)
+    return new_offsets, second[entries], new_history, overlap[entries]

@@ -334,10 +334,14 @@ class Scene:
         """This scene with its particles stored in ``order`` (``order[k]``: the particle
         stored at k); ``particle_id`` keeps each one's index in the scenario."""
         ids = np.arange(self.n_particles, dtype=np.int64) if self.particle_id is None else self.particle_id
+
+        def rows(array):  # a broadcast row (all particles alike, 0 bytes a particle) stays one
+            return array if array.ndim and array.strides[0] == 0 else array[order]
+
         return dataclasses.replace(
-            self, position=self.position[order], velocity=self.velocity[order],
-            angular_velocity=self.angular_velocity[order], radius=self.radius[order],
-            particle_material=self.particle_material[order], particle_id=ids[order])
+            self, position=self.position[order], velocity=rows(self.velocity),
+            angular_velocity=rows(self.angular_velocity), radius=rows(self.radius),
+            particle_material=rows(self.particle_material), particle_id=ids[order])
 
     def in_scenario_order(self, stored: np.ndarray) -> np.ndarray:
         """Rows in storage order (one per particle) put back in the scenario's order."""
