@@ -794,18 +794,18 @@ class Simulation:
         # Never for the serial, tracked loop: its probe is particle 0 of the scenario.
         self.input_scene = scene
         # (nor for a scene that records a trace: trace.csv follows the particle stored first)
-        self.sorts = (self.parallel and scene.n_particles >= REORDER_MIN_PARTICLES and scene.particle_id is None
-                      and not scene.trace)
+        self.in_space_order = (self.parallel and scene.n_particles >= REORDER_MIN_PARTICLES
+                               and scene.particle_id is None and not scene.trace)
         signs = self.law.exchange_signs
         # sorted again during the run (rebuild) only when the law says how a contact's
         # history reads from its other sphere: a sort can exchange the two
-        self.exchange_signs = np.array(signs) if self.sorts and self.pairs and signs is not None else None
+        self.exchange_signs = np.array(signs) if self.in_space_order and self.pairs and signs is not None else None
         self.skin = scene.skin if scene.skin is not None else 0.5 * float(scene.radius.max())
         # cells of half the list cutoff (LAMMPS' default bin for its sort): a jittered
         # lattice has one sphere a cell and sorts back to its fill's layers and rows
         self.sort_cell = 0.5 * (2.0 * float(scene.radius.max()) + self.skin)
         self.resort_ratio = RESORT_RATIO
-        if self.sorts:
+        if self.in_space_order:
             order = self.space_order(scene.position)
             if scattered(scene.position, order):
                 self.scene = scene = scene.reordered(order)
