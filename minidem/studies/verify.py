@@ -348,8 +348,8 @@ class Battery:
         except laws.LawError as exc:
             return [Check(name, None, f"not run: {exc}", "-", "-")]
         end_time = 1.05 * first.last_separation_time if first.separated else first.time
-        plain, _ = self.run_pair(np.eye(3), np.zeros(3), end_time=end_time, turning=False)
-        turned, sorts = self.run_pair(np.eye(3), np.zeros(3), end_time=end_time, turning=True)
+        plain, _ = self.run_turning(end_time, turn=False)
+        turned, sorts = self.run_turning(end_time, turn=True)
         speed, spin = float(np.abs(plain.velocity).max()), float(np.abs(plain.angular_velocity).max())
         difference = max(float(np.abs(turned.velocity - plain.velocity).max()) / speed,
                          float(np.abs(turned.angular_velocity - plain.angular_velocity).max()) / spin)
@@ -357,12 +357,33 @@ class Battery:
                       f"max relative difference {difference:.2e} over {sorts} reversals (the run: the contact)",
                       "<= 1e-9 of the speed and spin (round-off), at least 10 reversals", source)]
 
-    def run_pair(self, rotation: np.ndarray, shift: np.ndarray, end_time: float | None = None,
-                 turning: bool | None = None):
-        """The oblique pair collision, rotated and shifted. ``turning`` (True or False): on
-        the multi-particle path instead (15 more spheres far off, a list rebuild every few
-        steps), with every pair turned over at every rebuild when True; returns (the run,
-        how many times it was sorted)."""
+    def run_pair(self, rotation: np.ndarray, shift: np.ndarray, end_time: float | None = None):
+        """The oblique pair collision, rotated and shifted (to separation, or to ``end_time``)."""
+        data = self.pair_data(rotation, shift, end_time)
+        return simulation.Simulation(self.pair_scene(data)).run()
+
+    def run_turning(self, end_time: float, turn: bool) -> tuple[simulation.RunResult, int]:
+        """The pair collision on the multi-particle path (15 more spheres far off, a list
+        rebuild every ~30 steps with a 2 um skin), every pair turned over at every rebuild
+        when ``turn``: (the run, how many times it was sorted)."""
+        data = self.pair_data(np.eye(3), np.zeros(3), end_time)
+        material = data["particles"][1]["material"]
+        # more than simulation.PARALLEL_ABOVE spheres: the multi-particle path
+        data["particles"] += [{"position": [1.0 + 0.1 * k, 1.0, 1.0], "radius": data["particles"][1]["radius"],
+                               "material": material} for k in range(simulation.PARALLEL_ABOVE - 1)]
+        data["run"]["skin"] = 2e-6
+        sim = simulation.Simulation(self.pair_scene(data))
+        if turn:
+            sim.exchange_signs, sim.resort_ratio = np.array(self.law.exchange_signs), 0.0
+            sim.space_order = lambda position: np.arange(position.shape[0])[::-1].copy()
+        return sim.run(), sim.state.sorts
+
+    def pair_scene(self, data: dict):
+        return scenario.build_scene(data, source=f"<verify {self.law.name}: sphere-sphere>", output_directory="-")
+
+    def pair_data(self, rotation: np.ndarray, shift: np.ndarray, end_time: float | None) -> dict:
+        """The scenario of the oblique pair collision: unequal radii, both spinning, a
+        generic line of centres, rotated and shifted."""
         radii = (0.025, 0.02)
         mass = [r ** 3 for r in radii]  # same density: the mass ratio
         normal = np.array([1.0, 0.5, -0.3]) / np.linalg.norm([1.0, 0.5, -0.3])
@@ -392,21 +413,7 @@ class Battery:
             "run": run,
             "output": {"vtk": False},
         }
-        if turning is not None:
-            # more than simulation.PARALLEL_ABOVE spheres: the multi-particle path, whose
-            # lists are rebuilt (a 2 um skin: every ~30 steps at 5 m/s) and may be sorted
-            data["particles"] += [{"position": [1.0 + 0.1 * k, 1.0, 1.0], "radius": radii[1], "material": material}
-                                  for k in range(simulation.PARALLEL_ABOVE - 1)]
-            run["skin"] = 2e-6
-        scene = scenario.build_scene(data, source=f"<verify {self.law.name}: sphere-sphere>", output_directory="-")
-        sim = simulation.Simulation(scene)
-        if turning is None:
-            return sim.run()
-        if turning:
-            sim.exchange_signs, sim.resort_ratio = np.array(self.law.exchange_signs), 0.0
-            sim.space_order = lambda position: np.arange(position.shape[0])[::-1].copy()
-        result = sim.run()
-        return result, sim.state.sorts
+        return data
 
 
 def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
