@@ -563,9 +563,11 @@ class State:
     def follow_scene(self, scene: Scene) -> None:
         """The kernel's particle tuple with the scene's arrays (mass, radius, material) in
         the order the scene stores the particles (Simulation.use_order)."""
-        self.mass, self.particle_id = scene.mass, scene.particle_id
+        # mass and inertia once per order: Scene computes them anew at each access (1.5 ms at
+        # 200,000 particles, and the run loop reads the inertia at every call and sample)
+        self.mass, self.inertia, self.particle_id = scene.mass, scene.inertia, scene.particle_id
         self.particles = (self.position, self.velocity, self.angular_velocity, self.force, self.torque,
-                          self.mass, 1.0 / self.mass, 1.0 / scene.inertia, scene.radius, scene.particle_material)
+                          self.mass, 1.0 / self.mass, 1.0 / self.inertia, scene.radius, scene.particle_material)
 
     def list_near_planes(self) -> None:
         """The planes each sphere may touch until the next list build (at position_at_build),
@@ -1406,7 +1408,7 @@ class _RunLoop:
                 self.start_time, start_step, n_steps, completing,
                 self.stop_at_separation if stop_at_separation is None else stop_at_separation, trace,
                 self.tracking, threads, bounds, first_partner, block_cycles,
-                (self.sample_steps if samples is not None else 0, self.scene.inertia,
+                (self.sample_steps if samples is not None else 0, state.inertia,
                  self.no_samples if samples is None else samples, self.particle_energy, self.energy_blocks))
 
     def compile_kernel(self):
@@ -1460,7 +1462,7 @@ class _RunLoop:
             raise laws.LawError(f"law '{sim.law.name}' from plugin '{sim.entry.plugin}' "
                                 f"({sim.entry.distribution}): {force_problem(sim.law, exc)}") from exc
         if self.resume_from is None:
-            self.energy.append((self.start_time, state.kinetic_energy(self.scene.inertia)))
+            self.energy.append((self.start_time, state.kinetic_energy(state.inertia)))
             if self.frames_on:
                 if self.flight_frames:
                     sim._write_flight_frames(state, self.flight_frames, self.frame_interval, self.on_frame)
@@ -1611,7 +1613,7 @@ class _RunLoop:
         at_frame = self.frames_on and steps >= self.frame_step(loop["frames"])
         # every sample_steps the kernel has taken the sample
         if steps % self.sample_steps != 0 and (steps == self.total_steps or at_frame or separating):
-            self.energy.append((now, state.kinetic_energy(self.scene.inertia)))
+            self.energy.append((now, state.kinetic_energy(state.inertia)))
         if at_frame:
             self.on_frame(now, state)
             loop["frames"] += 1

@@ -24,6 +24,8 @@ and its results keep their bits.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 # A scene's order is taken as scattered when consecutive particles are on average this many
@@ -52,6 +54,15 @@ def spatial_order(position: np.ndarray, cell_size: float) -> np.ndarray:
 STEP_SAMPLES = 16_384
 
 
+@functools.lru_cache(maxsize=4)
+def _step_samples(n: int) -> np.ndarray:
+    """The first particles of the pairs mean_step looks at among ``n`` (drawn once per n:
+    a run's every list build asks again, and the draw and its sort were half the call)."""
+    first = np.sort(np.random.default_rng(0).integers(0, n - 1, STEP_SAMPLES))
+    first.flags.writeable = False
+    return first
+
+
 def mean_step(position: np.ndarray) -> float:
     """The mean distance (m) between particles stored one after the other (of up to
     STEP_SAMPLES pairs)."""
@@ -61,7 +72,7 @@ def mean_step(position: np.ndarray) -> float:
     if n - 1 <= STEP_SAMPLES:
         step = np.diff(position, axis=0)
     else:
-        first = np.sort(np.random.default_rng(0).integers(0, n - 1, STEP_SAMPLES))
+        first = _step_samples(n)
         step = position[first + 1] - position[first]
     return float(np.sqrt(np.einsum("ij,ij->i", step, step)).mean())
 
