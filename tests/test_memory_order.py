@@ -261,7 +261,10 @@ def test_verify_turns_over_the_history_of_the_parts_a_combination_adds(monkeypat
     # rolling moment kept its sign at each reversal and the run drifted by 4e-2 of the
     # speed and spin (minidem verify before this test). The same bits with them.
     battery = verify.Battery("hm", ROLLING_PART)
-    assert battery.pair_law().exchange_signs == (-1.0,) * 6
+    assert battery.law.exchange_signs == (-1.0,) * 6
+    # and the battery's other checks see the combination too: the rigid-body sliding
+    # limit (paper eqs 6-8, no rolling resistance) is not applicable, as for "hm+epsd"
+    assert [check.passed for check in battery.sliding_limit()] == [None]
     check, = battery.exchange()
     assert check.passed and "0.00e+00" in check.value, check.value
     # negative control: the rolling slots carried unchanged (+1) must be caught
@@ -286,7 +289,7 @@ def test_a_law_that_does_not_declare_its_exchange_is_never_sorted_during_a_run(m
     undeclared = dataclasses.replace(battery.law, history=tuple(
         dataclasses.replace(slot, exchange=None) for slot in battery.law.history))
     assert undeclared.exchange_signs is None
-    monkeypatch.setattr(battery, "pair_law", lambda: undeclared)
+    battery.law = undeclared
     check, = battery.exchange()
     assert check.passed is None and "not declared for slot(s) tangential_force" in check.value
     monkeypatch.setattr(laws.ContactLaw, "exchange_signs", property(lambda law: None))
