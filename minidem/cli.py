@@ -292,8 +292,10 @@ def command_bench(args) -> int:
 def command_verify(args) -> int:
     from minidem.studies import verify
 
-    out = args.out or Path("out") / f"verify-{args.law}"
-    checks = verify.run_battery(args.law, args.set, out)
+    battery = verify.Battery(args.law, args.set)
+    # named after the law as run: `hm --set contact.rolling=epsd` checks hm+epsd
+    out = args.out or Path("out") / f"verify-{battery.law.name}"
+    checks = verify.run_checks(battery, out)
     # the battery as run: its --set values change what it checks
     print(" ".join(["minidem verify", args.law, *(f"--set {value}" for value in args.set or ())]))
     print(verify.format_table(checks))

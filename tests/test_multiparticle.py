@@ -471,6 +471,31 @@ def test_same_bits_on_one_and_two_threads(monkeypatch):
         assert np.array_equal(runs[0].energy, other.energy)
 
 
+def test_a_threaded_run_keeps_its_freed_pages_between_list_builds_whatever_its_chunks_run_on(monkeypatch):
+    # Simulation.rebuild gives the heap's free pages back (malloc_trim) in a run on one
+    # thread only: a threaded run would fault them in again on both threads at the next
+    # build (docs/multi-particle.md, "Memory"). The decision follows run.threads, not the
+    # chunk: a threaded run's probes (LoopThreads) run some chunks on one thread.
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("needs two threads")
+    trims = []
+    monkeypatch.setattr(simulation, "release_free_memory", lambda: trims.append(1))
+    monkeypatch.setattr(simulation, "PARALLEL_MIN_PARTICLES", 0)  # the scene and kernel of the test above
+    monkeypatch.setattr(simulation.LoopThreads, "PROBE_FIRST", 1)
+    base = DEEP_PILE[1:] + ["fill.0.count=200", "run.end_time=0.012", "output.vtk=false"]
+    results = {}
+    for threads in (1, 2):
+        trims.clear()
+        result = simulation.Simulation(scenario.load_scene("scenarios/bench/settle.toml",
+                                                           base + [f"run.threads={threads}"])).run()
+        results[threads] = (len(trims), result)
+    one, two = results[1], results[2]
+    assert one[0] == one[1].neighbour_builds >= 3
+    assert two[0] == 0 and two[1].neighbour_builds >= 3
+    assert set(two[1].thread_steps) == {1, 2}  # chunks on one thread and on two
+    assert np.array_equal(one[1].position, two[1].position)
+
+
 def test_a_sphere_with_more_contacts_than_a_tile_gets_all_their_reactions():
     # One large sphere (index 0: it owns every pair of its row) touching 600 small ones
     # spread evenly over its surface (a Fibonacci lattice), each just apart from it and

@@ -1198,12 +1198,14 @@ class Simulation:
         np.copyto(state.position_at_build, state.position)
         state.list_near_planes()
         state.builds += 1
-        # The freed pages go back to the system on one thread only. A threaded run keeps
-        # them for the next build: it takes their page faults again on all its threads
-        # at once, and they cost it 6 % (N = 200,000 lattice, two threads, 3,000 steps,
-        # five pairs interleaved: 19.35 s against 20.93 s by medians; on one thread 32.0
-        # against 32.3 s, not resolved; peaks 334-340 MiB against 323-339).
-        if numba.get_num_threads() == 1:
+        # The freed pages go back to the system in a run on one thread only. A threaded
+        # run keeps them for the next build, which would take their page faults again
+        # on all its threads at once: 7.5 % of its time (N = 200,000 lattice, two threads,
+        # 3,000 steps, five pairs interleaved: 19.35 s against 20.93 s by medians, every
+        # pair faster; on one thread 32.0 against 32.3 s, not resolved; peaks 334-340 MiB
+        # against 323-339). Decided by the run's thread count, not the chunk's: a
+        # threaded run probes or falls back to one thread for some chunks (LoopThreads)
+        if self.loop_threads() == 1:
             release_free_memory()
 
     # -- running -----------------------------------------------------------------

@@ -377,7 +377,7 @@ class Battery:
         return simulation.Simulation(self.pair_scene(data)).run()
 
     def run_turning(self, end_time: float, turn: bool) -> tuple[simulation.RunResult, int]:
-        """The pair collision with a list rebuild every few steps (a 2 um skin), the two
+        """The pair collision with a list rebuild about every 20 steps (a 2 um skin), the two
         spheres' order reversed at every rebuild when ``turn``: (the run, how many times it
         was sorted). Sorting and the exchange of a pair's history are the same code for two
         spheres as for many (Simulation.sort_in_space), and two run on the kernel the other
@@ -436,7 +436,11 @@ def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
 
 
 def run_battery(law_name: str, overrides: list[str] = (), out_directory: Path | None = None) -> list[Check]:
-    battery = Battery(law_name, overrides)
+    return run_checks(Battery(law_name, overrides), out_directory)
+
+
+def run_checks(battery: Battery, out_directory: Path | None = None) -> list[Check]:
+    """Every check of the battery, and its report in ``out_directory`` (None: none)."""
     checks = battery.history_bounds() + battery.energy() + battery.sliding_limit() + battery.duration()
     checks += battery.adhesion()
     comparison, curves = battery.against_hmd()
