@@ -349,12 +349,11 @@ class Battery:
         same run left in its order."""
         name = "history read from the other sphere (HistorySlot.exchange)"
         source = "a contact's force does not depend on which of its spheres is the first (docs/writing-a-contact-law.md)"
-        law = self.law
-        if not law.history_size:
+        if not self.law.history_size:
             return [Check(name, None, "skipped: the law keeps no history", "-", "-")]
-        signs = law.exchange_signs
+        signs = self.law.exchange_signs
         if signs is None:
-            undeclared = ", ".join(slot.name for slot in law.history if slot.exchange is None)
+            undeclared = ", ".join(slot.name for slot in self.law.history if slot.exchange is None)
             return [Check(name, None, f"not declared for slot(s) {undeclared}: a run with this law keeps the order "
                           "it starts in (never sorted in space again as its particles mix)", "-", source)]
         try:
