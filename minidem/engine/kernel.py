@@ -90,7 +90,7 @@ from minidem.geometry.primitives import (
     triangle_closest_point,
 )
 from minidem.contact.history import history_column, history_row, history_row_of
-from minidem.engine.integrate import block_sum, drift, kick_by, particle_kinetic_energy
+from minidem.engine.integrate import block_sum, drift, kick, kick_spin, particle_kinetic_energy, turns
 # the blocks of particles per thread are chosen outside the kernel (advance's bounds and
 # first_partner); named here too, where the kernel's two passes are described
 from minidem.engine.blocks import cycle_counter, defer_finishing  # noqa: F401
@@ -578,9 +578,9 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
             break
         px, py, pz, ri, mi, mat = position[i, 0], position[i, 1], position[i, 2], radius[i], mass[i], material[i]
         vi = (velocity[i, 0], velocity[i, 1], velocity[i, 2])
+        # i's spin is read where a contact of its own needs it, not here: a sphere in free
+        # flight then touches no byte of it (finish_range)
         wi = ZERO
-        if SPIN:
-            wi = (angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2])
         acc = (mi * gravity[0], mi * gravity[1], mi * gravity[2], 0.0, 0.0, 0.0, 0)
 
         # Walls. Each kind has its own loop: binding the history rows of different
@@ -605,6 +605,8 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
             if overlap >= ri:
                 fault(status, TUNNELLED, i, w, PLANE)
                 break
+            if SPIN:
+                wi = (angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2])
             acc, _, _, _, fn, ft, increment, ok = evaluate_contact(
                 acc, constants[pair_row[mat, wall_material[w]]], history_row(wall_history, k), overlap, previous,
                 (wall_normal[w, 0], wall_normal[w, 1], wall_normal[w, 2]), False, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi,
@@ -641,6 +643,8 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                         fault(status, TUNNELLED, i, c, CYLINDER)
                         break
                     continue
+                if SPIN:
+                    wi = (angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2])
                 acc, _, _, _, _, _, _, ok = evaluate_contact(
                     acc, constants[pair_row[mat, cylinder_material[c]]], history_row_of(cylinder_history, i, c), overlap, previous,
                     (nx, ny, nz), True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)
@@ -702,6 +706,8 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                     if overlap >= ri:
                         fault(status, TUNNELLED, i, t, TRIANGLE)
                         break
+                    if SPIN:
+                        wi = (angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2])
                     acc, _, _, _, _, _, _, ok = evaluate_contact(
                         acc, constants[pair_row[mat, triangle_material[t]]], history_row(mesh_history, k), overlap, previous,
                         (nx, ny, nz), True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)
@@ -802,7 +808,8 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 tile[T_DV, n_tile], tile[T_DV + 1, n_tile], tile[T_DV + 2, n_tile] = (
                     vi[0] - velocity[j, 0], vi[1] - velocity[j, 1], vi[2] - velocity[j, 2])
                 if SPIN:
-                    tile[T_WI, n_tile], tile[T_WI + 1, n_tile], tile[T_WI + 2, n_tile] = wi
+                    tile[T_WI, n_tile], tile[T_WI + 1, n_tile], tile[T_WI + 2, n_tile] = (
+                        angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2])
                     tile[T_WJ, n_tile], tile[T_WJ + 1, n_tile], tile[T_WJ + 2, n_tile] = (
                         angular_velocity[j, 0], angular_velocity[j, 1], angular_velocity[j, 2])
                 for c in range(pair_history.shape[1]):
@@ -906,13 +913,18 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
             # wrote into are zero still
             force[p, 0], force[p, 1], force[p, 2] = 0.0, 0.0, 0.0
             torque[p, 0], torque[p, 1], torque[p, 2] = 0.0, 0.0, 0.0
+        # the spin only under a torque (kick_spin): a falling sphere leaves it alone
+        turning = SPIN and turns((tx, ty, tz))
         if CLOSING_KICK > 0.0:
-            kick_by(p, velocity, angular_velocity, (fx, fy, fz), (tx, ty, tz), inverse_mass, inverse_inertia,
-                    CLOSING_KICK * dt, SPIN)
+            kick(p, velocity, (fx, fy, fz), inverse_mass, CLOSING_KICK * dt)
+            if turning:
+                kick_spin(p, angular_velocity, (tx, ty, tz), inverse_inertia, CLOSING_KICK * dt)
         if sampling:
             particle_energy[p] = particle_kinetic_energy(p, mass, inertia, velocity, angular_velocity)
-        if drift_on and kick_drift_one(p, position, velocity, angular_velocity, (fx, fy, fz), (tx, ty, tz),
-                                        inverse_mass, inverse_inertia, dt, position_at_build, half_skin_squared):
+        if drift_on and turning:
+            kick_spin(p, angular_velocity, (tx, ty, tz), inverse_inertia, OPENING_KICK * dt)
+        if drift_on and kick_drift_one(p, position, velocity, (fx, fy, fz), inverse_mass, dt, position_at_build,
+                                        half_skin_squared):
             moved_too_far += 1
     return moved_too_far
 
@@ -968,12 +980,11 @@ def finish_kick_drift(particles, pairs, dt, drift_on, position_at_build, half_sk
 
 
 @numba.njit(cache=True, inline="always")
-def kick_drift_one(p, position, velocity, angular_velocity, force_on_p, torque_on_p, inverse_mass, inverse_inertia,
-                   dt, position_at_build, half_skin_squared):
-    """Opening kick (by the force and torque given, 3-tuples) and drift of particle p;
-    True when it has moved more than half the skin since the neighbour list was built."""
-    kick_by(p, velocity, angular_velocity, force_on_p, torque_on_p, inverse_mass, inverse_inertia, OPENING_KICK * dt,
-            SPIN)
+def kick_drift_one(p, position, velocity, force_on_p, inverse_mass, dt, position_at_build, half_skin_squared):
+    """Opening kick of the velocity (by the force given, a 3-tuple; the spin's is the
+    caller's, ``kick_spin``) and drift of particle p; True when it has moved more than
+    half the skin since the neighbour list was built."""
+    kick(p, velocity, force_on_p, inverse_mass, OPENING_KICK * dt)
     drift(p, position, velocity, dt)
     if not CHECK_DISPLACEMENT:
         return False
@@ -990,8 +1001,10 @@ def kick_drift(particles, dt, position_at_build, half_skin_squared):
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     moved_too_far = 0
     for p in particle_range(position.shape[0]):
-        moved = kick_drift_one(p, position, velocity, angular_velocity, (force[p, 0], force[p, 1], force[p, 2]),
-                               (torque[p, 0], torque[p, 1], torque[p, 2]), inverse_mass, inverse_inertia, dt,
+        if SPIN and turns((torque[p, 0], torque[p, 1], torque[p, 2])):
+            kick_spin(p, angular_velocity, (torque[p, 0], torque[p, 1], torque[p, 2]), inverse_inertia,
+                      OPENING_KICK * dt)
+        moved = kick_drift_one(p, position, velocity, (force[p, 0], force[p, 1], force[p, 2]), inverse_mass, dt,
                                position_at_build, half_skin_squared)
         if PAIRS:  # zero for the force pass, which sums p's pair reactions there (force_range)
             force[p, 0], force[p, 1], force[p, 2] = 0.0, 0.0, 0.0
