@@ -576,7 +576,9 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
             group_first, n_tile = i, 0
         if i == last:
             break
-        px, py, pz, ri, mi, mat = position[i, 0], position[i, 1], position[i, 2], radius[i], mass[i], material[i]
+        # i's material is read where a contact needs it (pair_row[material[i], ...]), as its
+        # spin below: a sphere in free flight reads neither
+        px, py, pz, ri, mi = position[i, 0], position[i, 1], position[i, 2], radius[i], mass[i]
         vi = (velocity[i, 0], velocity[i, 1], velocity[i, 2])
         # i's spin is read where a contact of its own needs it, not here: a sphere in free
         # flight then touches no byte of it (finish_range)
@@ -597,7 +599,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
             wall_overlap[k] = overlap
             if TRACK:
                 note_transitions(stats, time, dt, overlap, previous)
-            lives_above = engaged_above(constants, pair_row[mat, wall_material[w]])
+            lives_above = engaged_above(constants, pair_row[material[i], wall_material[w]])
             if overlap <= lives_above:
                 if previous > lives_above:
                     wall_history[k, :] = 0.0  # contact ends: its history is dropped
@@ -608,7 +610,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
             if SPIN:
                 wi = (angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2])
             acc, _, _, _, fn, ft, increment, ok = evaluate_contact(
-                acc, constants[pair_row[mat, wall_material[w]]], history_row(wall_history, k), overlap, previous,
+                acc, constants[pair_row[material[i], wall_material[w]]], history_row(wall_history, k), overlap, previous,
                 (wall_normal[w, 0], wall_normal[w, 1], wall_normal[w, 2]), False, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi,
                 dt, stats)
             if not ok:
@@ -624,7 +626,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
         # a tracked kernel lists every plane for every sphere, in order: sphere 0's entry
         # for plane w is w
         if TRACK and i == 0 and 0 <= probe_wall and wall_overlap[probe_wall] <= engaged_above(
-                constants, pair_row[mat, wall_material[probe_wall]]):
+                constants, pair_row[material[i], wall_material[probe_wall]]):
             probe[PROBE_OVERLAP], probe[PROBE_FN] = wall_overlap[probe_wall], 0.0
             probe[PROBE_FT], probe[PROBE_FT + 1], probe[PROBE_FT + 2] = 0.0, 0.0, 0.0
 
@@ -635,7 +637,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 cylinder_overlap_prev[i, c] = overlap
                 if TRACK:
                     note_transitions(stats, time, dt, overlap, previous)
-                lives_above = engaged_above(constants, pair_row[mat, cylinder_material[c]])
+                lives_above = engaged_above(constants, pair_row[material[i], cylinder_material[c]])
                 if overlap <= lives_above or overlap >= ri:
                     if overlap <= lives_above < previous:
                         cylinder_history[i, c, :] = 0.0
@@ -646,7 +648,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 if SPIN:
                     wi = (angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2])
                 acc, _, _, _, _, _, _, ok = evaluate_contact(
-                    acc, constants[pair_row[mat, cylinder_material[c]]], history_row_of(cylinder_history, i, c), overlap, previous,
+                    acc, constants[pair_row[material[i], cylinder_material[c]]], history_row_of(cylinder_history, i, c), overlap, previous,
                     (nx, ny, nz), True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)
                 if not ok:
                     fault(status, NON_FINITE_FORCE, i, c, CYLINDER)
@@ -709,7 +711,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                     if SPIN:
                         wi = (angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2])
                     acc, _, _, _, _, _, _, ok = evaluate_contact(
-                        acc, constants[pair_row[mat, triangle_material[t]]], history_row(mesh_history, k), overlap, previous,
+                        acc, constants[pair_row[material[i], triangle_material[t]]], history_row(mesh_history, k), overlap, previous,
                         (nx, ny, nz), True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)
                     if not ok:
                         fault(status, NON_FINITE_FORCE, i, t, TRIANGLE)
@@ -744,7 +746,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 reach = ri + radius[j]
                 lives_above = 0.0
                 if REACH:  # compile-time: a contact lives while the distance is below r_i + r_j + reach
-                    lives_above = engaged_above(constants, pair_row[mat, material[j]])
+                    lives_above = engaged_above(constants, pair_row[material[i], material[j]])
                     touching = distance_squared < (reach - lives_above) * (reach - lives_above)
                 else:
                     touching = distance_squared < reach * reach
@@ -772,7 +774,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 pair_overlap[e] = overlap
                 if TRACK:
                     note_transitions(stats, time, dt, overlap, previous)
-                row = pair_row[mat, material[j]]
+                row = pair_row[material[i], material[j]]
                 lives_above = engaged_above(constants, row)
                 if overlap <= lives_above:
                     # touching by the squared distance, not by its root (the distance within
