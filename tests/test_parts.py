@@ -141,6 +141,31 @@ def test_a_paper_law_without_couples_is_that_law_itself():
     assert registry.with_parts(registry.entry("hm+epsd"), {"twisting": "marshall"}).law.name == "hm+epsd+marshall"
 
 
+def test_a_wall_contact_through_the_combinations_own_copy_gives_the_same_bits_as_inlined():
+    # A combination's kernel calls force_alone (the same force compiled on its own) at a
+    # wall and inlines force in the tile of pair contacts (ContactLaw.force_alone). Both
+    # are compiled without fast-math and with the kernel's error model, so a rolling
+    # sphere's oblique impact (every step through the wall path, couples included) is the
+    # same, bit for bit, as with the law inlined there too (force_alone=None).
+    import dataclasses
+
+    scene_overrides = ['contact.law="hm"', 'contact.rolling="epsd"', "contact.rolling_friction=0.1",
+                       "output.vtk=false"]
+    entry = laws.registry().entry("hm+epsd")
+    assert entry.law.force_alone is not None
+    inlined = dataclasses.replace(entry, law=dataclasses.replace(entry.law, force_alone=None))
+    results = []
+    for registered in (entry, inlined):
+        scene = scenario.load_scene(OBLIQUE, scene_overrides)
+        registry = type("One", (), {"entry": staticmethod(lambda name, registered=registered: registered)})()
+        results.append(simulation.Simulation(scene, registry=registry).run())
+    called, inline = results
+    assert called.steps == inline.steps > 100
+    for name in ("position", "velocity", "angular_velocity"):
+        np.testing.assert_array_equal(getattr(called, name), getattr(inline, name), err_msg=name)
+    assert called.peak_normal_force == inline.peak_normal_force > 0.0
+
+
 @pytest.mark.parametrize("contact, expected", [
     ('normal = "hertz"\ndamping = "viscous"\ntangential = "mindlin"\nfriction = 0.1',
      ["contact", "damping part 'viscous' requires a 'linear' part", "'hertz' provides hertzian"]),

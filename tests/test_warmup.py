@@ -56,13 +56,13 @@ import json, sys
 from minidem.engine import simulation, warmup
 from minidem.scene import scenario
 overrides = ["fill.0.count=20", "output.vtk=false", "run.end_time=2e-5"]
-scene = scenario.load_scene("scenarios/bench/settle.toml", overrides, while_checking=warmup.kernel_beside_check)
+scene = scenario.load_scene(sys.argv[1], overrides, while_checking=warmup.kernel_beside_check)
 started = warmup._KERNEL_HELPERS.get(id(scene)) is not None
 sim = simulation.Simulation(scene)
 result = sim.run()
-advance = sim.kernel.advance
-print(json.dumps({"started": started, "steps": result.steps,
-                  "advance": [sum(advance.stats.cache_hits.values()), sum(advance.stats.cache_misses.values())]}))
+stats = lambda f: None if f is None else [sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values())]
+print(json.dumps({"started": started, "steps": result.steps, "advance": stats(sim.kernel.advance),
+                  "force_alone": stats(sim.law.force_alone)}))
 """
 
 
@@ -71,10 +71,7 @@ def test_the_run_loads_the_kernel_the_helper_compiled_beside_the_check(tmp_path)
     the check of overlapping spheres compiles the neighbour search; the run then loads
     that kernel from the cache (a cache hit, no compilation of its own): the helper built
     the same Simulation and the same argument types as the run."""
-    env = dict(os.environ, MINIDEM_CACHE_DIR=str(tmp_path / "minidem"), NUMBA_CACHE_DIR=str(tmp_path / "numba"))
-    run = subprocess.run([sys.executable, "-c", _LOAD_WITH_HELPER], env=env, capture_output=True, text=True)
-    assert run.returncode == 0, run.stderr
-    found = json.loads(run.stdout.strip().splitlines()[-1])
+    found, env = _load_with_helper(tmp_path, "scenarios/bench/settle.toml")
     if (os.cpu_count() or 1) < 2:  # no second CPU: no helper, the run compiles its kernel itself
         assert not found["started"] and found["advance"][1] == 1, found
         return
@@ -83,9 +80,31 @@ def test_the_run_loads_the_kernel_the_helper_compiled_beside_the_check(tmp_path)
     assert found["advance"][0] >= 1 and found["advance"][1] == 0, found
     assert found["steps"] == 1, found
     # the next run finds the neighbour search cached: nothing to compile, no helper
-    again = subprocess.run([sys.executable, "-c", _LOAD_WITH_HELPER], env=env, capture_output=True, text=True)
+    again = subprocess.run([sys.executable, "-c", _LOAD_WITH_HELPER, "scenarios/bench/settle.toml"], env=env,
+                           capture_output=True, text=True)
     assert again.returncode == 0, again.stderr
     assert not json.loads(again.stdout.strip().splitlines()[-1])["started"]
+
+
+def _load_with_helper(tmp_path, scene: str):
+    env = dict(os.environ, MINIDEM_CACHE_DIR=str(tmp_path / "minidem"), NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    run = subprocess.run([sys.executable, "-c", _LOAD_WITH_HELPER, scene], env=env, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    return json.loads(run.stdout.strip().splitlines()[-1]), env
+
+
+def test_the_run_compiles_a_combinations_wall_force_while_the_helper_compiles_the_kernel(tmp_path):
+    """scenarios/settle.toml (a combination, hm+epsd+sds_twisting) on a fresh install: the
+    run's process compiles the combination's force_alone (the law's copy its kernel calls
+    at a wall) before the check of overlapping spheres, beside the helper compiling the
+    kernel (warmup._compile_called_force), and loads the kernel from the cache."""
+    found, _ = _load_with_helper(tmp_path, "scenarios/settle.toml")
+    if (os.cpu_count() or 1) < 2:
+        assert not found["started"], found
+        return
+    assert found["started"] and found["steps"] == 1, found
+    assert found["force_alone"] == [0, 1], found  # compiled once, here
+    assert found["advance"][0] >= 1 and found["advance"][1] == 0, found
 
 
 _COMBINATION_INLINED = """
@@ -102,27 +121,32 @@ scene = scenario.load_scene("scenarios/oblique.toml", ['contact.law="hm"', 'cont
                                                         "contact.rolling_friction=0.1"])
 sim = simulation.Simulation(scene)
 result = sim.run()
-force = sim.law.force
+stats = lambda f: [sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values())]
 print(json.dumps({"couples": bool(sim.law.couples), "started": started, "separated": bool(result.separated),
-                  "force": [sum(force.stats.cache_hits.values()), sum(force.stats.cache_misses.values())]}))
+                  "force": stats(sim.law.force), "force_alone": stats(sim.law.force_alone)}))
 """
 
 
-def test_a_combination_force_is_compiled_inside_the_kernel_and_not_beside_it(tmp_path):
-    """A combination's generated force function is inlined into the kernel
-    (minidem.contact.compose: compiled on its own it stayed a call, and the tile of pair
-    contacts could not be vector code). So it is never compiled on its own, in the run's
-    process or in a helper: the helper of a fresh install is asked for the shared
-    functions only, not for the law (warmup.start)."""
+def test_a_combination_force_is_inlined_in_the_kernel_and_its_wall_copy_compiled_beside_it(tmp_path):
+    """A combination's generated ``force`` is inlined into the kernel, never compiled on
+    its own (minidem.contact.compose: compiled on its own it stayed a call, and the tile
+    of pair contacts could not be vector code). A wall contact calls its twin
+    ``force_alone`` (ContactLaw.force_alone), which on a fresh install the helper compiles
+    first, beside the kernel (warmup.start): the run's process loads it from the cache
+    (a hit, no compilation of its own) and the helper was asked for the law by name."""
     env = dict(os.environ, MINIDEM_CACHE_DIR=str(tmp_path / "minidem"), NUMBA_CACHE_DIR=str(tmp_path / "numba"))
     run = subprocess.run([sys.executable, "-c", _COMBINATION_INLINED], env=env, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     found = json.loads(run.stdout.strip().splitlines()[-1])
     assert found["couples"] and found["separated"], found
-    # [cache hits, cache misses]: neither, the dispatcher was never compiled
+    # [cache hits, cache misses]: neither, the inlined dispatcher was never compiled
     assert found["force"] == [0, 0], found
-    # the law's name is the first argument of compile_for_run: None, no law to compile
-    assert all(job != "compile_for_run" or arguments[0] is None for job, arguments in found["started"]), found
+    if (os.cpu_count() or 1) < 2:  # no second CPU: no helper, the kernel compiled the twin itself
+        assert found["force_alone"] == [0, 1] and not found["started"], found
+        return
+    assert found["force_alone"] == [1, 0], found
+    # the law's name is the first argument of compile_for_run
+    assert ["compile_for_run", ["hm+epsd", True, False, False]] in found["started"], found
 
 
 _HELPER_IMPORTS = """

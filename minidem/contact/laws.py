@@ -216,6 +216,13 @@ class ContactLaw:
     # supply_bound(pair, constants, effective_radius) -> J, the most kinetic energy one
     # contact can give its bodies (the energy guard and verify add it per contact)
     supply_bound: Callable | None = None
+    # a combination (set by compose): the same force compiled on its own, to be called
+    # where the kernel evaluates one contact at a time (walls) while ``force``, which numba
+    # inlines, is inlined only into the loop over a tile of pair contacts (vector code).
+    # The law's code is then compiled twice as two functions, not twice inside the
+    # kernel: a first run compiles ``force_alone`` beside the kernel
+    # (minidem.engine.warmup). None: the kernel calls ``force`` there too
+    force_alone: Any = None
 
     @property
     def energy_roles(self) -> tuple[str, ...]:
@@ -883,6 +890,15 @@ def _compiled_function_problem(function, field: str, arguments: tuple[str, ...])
         return (f"'{field}' ({func.__qualname__}) takes {len(given)} arguments; the engine calls it with "
                 f"{len(arguments)}: ({', '.join(arguments)})")
     return None
+
+
+def called_force(law: ContactLaw):
+    """The law's force function the kernel calls at a wall contact (``force_alone``, else
+    ``force``), or None when numba inlines that one (nothing to compile on its own)."""
+    force = law.force_alone if law.force_alone is not None else law.force
+    if not hasattr(force, "compile") or getattr(force, "targetoptions", {}).get("inline") == "always":
+        return None
+    return force
 
 
 def force_import_name(law: ContactLaw) -> tuple[str, str]:

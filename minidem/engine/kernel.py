@@ -97,6 +97,7 @@ from minidem.engine.blocks import cycle_counter, defer_finishing  # noqa: F401
 
 # >>> specialisation block (rewritten by minidem.engine.simulation.compile_kernel)
 from minidem.contact.builtin_laws.linear import linear_force as law_force  # noqa: E402
+law_force_alone = law_force
 
 SPIN = True
 COUPLES = False
@@ -228,12 +229,19 @@ def rotate_history(history, nx, ny, nz):
 # bounced between the cores (ten times slower than one thread). Loops over walls,
 # triangles and neighbours therefore live in force_range itself.
 @numba.njit(cache=True, inline="always")
-def contact_response(constants_row, history, overlap, previous, normal, curved, vi, wi, vj, wj, lever_i, lever_j,
-                     effective_radius, effective_mass, dt, stats):
+def contact_response(law, constants_row, history, overlap, previous, normal, curved, vi, wi, vj, wj, lever_i,
+                     lever_j, effective_radius, effective_mass, dt, stats):
     """The one evaluation every contact goes through (sphere-plane, -cylinder,
     -triangle and -sphere): history into the tangent plane (``curved``: the normal
     can turn), contact-point velocity and the law. Vectors are 3-tuples; n points from
     the partner to i.
+
+    ``law``: the law's force function, ``law_force`` in the tile of pair contacts (a law
+    numba inlines is inlined there, where it becomes vector code) and ``law_force_alone``
+    at a wall (the same law compiled on its own, ContactLaw.force_alone, called: one
+    copy fewer of a combination's code inside the kernel, 1.7 s of the ~11 s its first
+    compile takes for scenarios/settle.toml, compiled beside it, see
+    minidem.engine.warmup).
 
     A wall is a partner that does not move (v_j = w_j = 0, lever_j = 0); its lever arm
     lever_i is the undeformed radius, as in the paper's rigid-body analysis (eqs 3-8).
@@ -255,12 +263,12 @@ def contact_response(constants_row, history, overlap, previous, normal, curved, 
     if COUPLES:
         # rolling and twisting resistance: the law sees the spin of i relative to j and
         # returns a pure couple on i (j gets its opposite: no moment of a force to balance)
-        fn, ftx, fty, ftz, mx, my, mz = law_force(
+        fn, ftx, fty, ftz, mx, my, mz = law(
             constants_row, effective_radius, effective_mass, overlap, overlap - max(previous, 0.0), normal_velocity,
             increment, tangential_velocity, history, (wi[0] - wj[0], wi[1] - wj[1], wi[2] - wj[2]), normal, dt)
         ok = finite(fn, ftx, fty, ftz) and finite(mx, my, mz, 0.0)
     else:
-        fn, ftx, fty, ftz = law_force(constants_row, effective_radius, effective_mass, overlap,
+        fn, ftx, fty, ftz = law(constants_row, effective_radius, effective_mass, overlap,
                                       overlap - max(previous, 0.0), normal_velocity, increment, tangential_velocity,
                                       history)
         ok = finite(fn, ftx, fty, ftz)
@@ -293,8 +301,8 @@ def evaluate_contact(acc, constants_row, history, overlap, previous, normal, cur
     """``contact_response`` added to acc (``add_contact``): a wall contact's evaluation.
     Returns (acc, then contact_response's values)."""
     on_i, direction, couple, fn, ft, increment, ok = contact_response(
-        constants_row, history, overlap, previous, normal, curved, vi, wi, vj, wj, lever_i, lever_j,
-        effective_radius, effective_mass, dt, stats)
+        law_force_alone, constants_row, history, overlap, previous, normal, curved, vi, wi, vj, wj, lever_i,
+        lever_j, effective_radius, effective_mass, dt, stats)
     return add_contact(acc, lever_i, on_i, direction, couple), on_i, direction, couple, fn, ft, increment, ok
 
 
@@ -352,7 +360,7 @@ def evaluate_pair_tile(count, rows, constants, tile, tile_history, response, dt,
         mass_sum = mi + mj
         shared = 1.0 / (reach * mass_sum)
         on_i, direction, couple, _, _, _, ok = contact_response(
-            constants[rows[k]], history_column(tile_history, k, TILE_CONTACTS), overlap, tile[T_PREVIOUS, k],
+            law_force, constants[rows[k]], history_column(tile_history, k, TILE_CONTACTS), overlap, tile[T_PREVIOUS, k],
             (tile[T_DX, k] * inverse, tile[T_DY, k] * inverse, tile[T_DZ, k] * inverse), True,
             (tile[T_DV, k], tile[T_DV + 1, k], tile[T_DV + 2, k]), wi, ZERO, wj,
             ri - 0.5 * overlap, rj - 0.5 * overlap, ri * rj * mass_sum * shared, mi * mj * reach * shared, dt, stats)

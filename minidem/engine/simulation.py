@@ -287,7 +287,8 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
     law_hash, law_dispatchers = _force_dependencies(law.force)
     key = hashlib.sha256(
         f"{_engine_hash()}|{law_hash}|{entry.distribution}|{entry.version}|{force_module}."
-        f"{force_name}|{flags}|{law.vector_history_offsets}|{numba.__version__}|{__version__}".encode()
+        f"{force_name}|{law.force_alone is not None}|{flags}|{law.vector_history_offsets}|{numba.__version__}|"
+        f"{__version__}".encode()
     ).hexdigest()[:16]
     # a combination's name joins its parts with '+': a module name takes identifiers only
     module_name = f"minidem_kernel_{re.sub(r'[^A-Za-z0-9_]', '_', law.name)}_{key}"
@@ -297,7 +298,10 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
     head, rest = template.split(_BLOCK_START, 1)
     _, tail = rest.split(_BLOCK_END, 1)
     block = (f"{_BLOCK_START} (law '{law.name}' from {entry.distribution} {entry.version})\n"
-             f"from {force_module} import {force_name} as law_force  # noqa: E402\n\n"
+             f"from {force_module} import {force_name} as law_force  # noqa: E402\n"
+             + ("from {} import {} as law_force_alone  # noqa: E402\n\n".format(
+                 *laws.import_name(law.force_alone, "force_alone"))
+                if law.force_alone is not None else "law_force_alone = law_force\n\n")
              + "".join(f"{name} = {value}\n" for name, value in flags.items())
              # the law's vector history slots, as a compile-time constant the kernel unrolls
              + f"VECTOR_OFFSETS = {tuple(law.vector_history_offsets)!r}\n" + _BLOCK_END)
@@ -1462,11 +1466,13 @@ class _RunLoop:
             # user waiting for it is told what it is
             compiling = _notice_if_slow(sim.notify, f"compiling the kernel of law '{sim.law.name}' for this scene "
                                         f"shape; it is cached in {cache_directory()} for later runs")
+            if kernel_helper is not None and kernel_helper.announced:
+                compiling = contextlib.nullcontext()  # the check's notice named this compilation already
             with compiling:
                 if kernel_helper is not None:
                     warmup.compile_shared(sim.pairs, meshes)
                     kernel_helper.wait()
-                with helper.law_compiled(sim.law.force):
+                with helper.law_compiled(laws.called_force(sim.law)):
                     self.compile_kernel()
                 helper.wait()
                 if self.resume_from is None and (sim.pairs or meshes):

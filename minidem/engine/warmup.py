@@ -25,12 +25,16 @@ the run builds them), while this process compiles the neighbour search for the c
 then the other shared functions itself, and loads the kernel from the cache when the
 helper is done (:func:`kernel_helper`); the guard's two functions go to whichever of the
 two is free first. First run of scenarios/settle.toml: the two
-compilations side by side instead of one after the other.
+compilations side by side instead of one after the other. A combination's kernel calls
+its ``force_alone`` at walls (``minidem.contact.compose``): this process compiles that
+first, before the check, while the helper inlines the kernel's functions, so the
+kernel's typing loads it from the cache (:func:`_compile_called_force`).
 
 A preset law's force function is compiled on its own and linked into the kernel, so the
 helper compiles it first (oblique: the hmd law, ~1.2 s) and the kernel's typing waits
-for it (:meth:`Helper.law_compiled`); a combination's is inlined into the kernel and
-compiled with it. On a fresh install ``minidem run`` starts the helper
+for it (:meth:`Helper.law_compiled`); a combination's is inlined into the kernel's tile
+of pair contacts and compiled with it, and its copy for walls (``force_alone``) is the
+one the helper compiles first (``minidem.contact.laws.called_force``). On a fresh install ``minidem run`` starts the helper
 before it imports numba and the engine (:func:`prestart`): the helper imports them while
 the run does, and is handed its job (either of the two above) once the run has read the
 scene; started after those imports, it reached the law ~0.35 s after the kernel's typing
@@ -142,6 +146,8 @@ class Helper:
         self.process = process
         # it compiles the law's force function first and then says so on its standard output
         self.law_pending = law_first and process is not None
+        # the run has told the user what this helper compiles (kernel_beside_check's notice)
+        self.announced = False
 
     def wait_for_law(self) -> None:
         """Until the helper has compiled the law's force function (or ended)."""
@@ -315,10 +321,12 @@ def start(pairs: bool, meshes: bool, law=None) -> Helper:
     if not _second_cpu():
         dismiss()
         return Helper(None)
-    # a force numba inlines into the kernel (a combination of parts, minidem.contact.compose)
-    # is compiled there, with the kernel: nothing to compile beside it
-    law_first = law is not None and hasattr(law.force, "compile") and not _cached(law.force) \
-        and getattr(law.force, "targetoptions", {}).get("inline") != "always"
+    from minidem.contact import laws
+
+    # the force the kernel calls at a wall (a preset law's, or a combination's force_alone;
+    # a force numba inlines is compiled with the kernel: nothing to compile beside it)
+    called = None if law is None else laws.called_force(law)
+    law_first = called is not None and not _cached(called)
     shared = not all(_cached(dispatcher) for dispatcher in _dispatchers(pairs, meshes).values())
     if not law_first and not shared:
         dismiss()
@@ -337,7 +345,7 @@ def compile_for_run(law_name: str | None, shared: bool, pairs: bool, meshes: boo
             from minidem.engine.simulation import force_signature
 
             law = laws.registry().entry(law_name).law
-            law.force.compile(force_signature(law))
+            laws.called_force(law).compile(force_signature(law))
         finally:
             print("law", flush=True)  # compiled or not: the run must not wait any longer
     if shared:
@@ -372,15 +380,40 @@ def kernel_beside_check(scene, notify=None):
         else:
             from minidem.engine.simulation import _notice_if_slow, cache_directory
 
-            with _notice_if_slow(notify, "compiling the neighbour search for the check of overlapping spheres, "
+            def told(text):
+                helper.announced = True
+                notify(text)
+
+            with _notice_if_slow(None if notify is None else told,
+                                 "compiling the neighbour search for the check of overlapping spheres, "
                                  "and beside it the scene's kernel; both are cached in "
                                  f"{cache_directory()} for later runs"):
+                _compile_called_force(scene)
                 yield
     except BaseException:
         helper.stop()
         raise
     if helper.process is not None:
         _KERNEL_HELPERS[id(scene)] = (scene, helper)
+
+
+def _compile_called_force(scene) -> None:
+    """The force the scene's kernel calls at a wall, when it is a combination's
+    ``force_alone`` (a preset law's force is cached with the first kernel of that law):
+    compiled here, before the check, while the helper's kernel is still being inlined
+    (~2 s), so that the kernel's typing loads it from the cache instead of compiling it
+    (first run of scenarios/settle.toml: ~0.9 s here, ~1.8 s less for the kernel, the
+    run's critical path). Whatever fails here the kernel compiles, and reports, itself."""
+    try:
+        from minidem.contact import laws
+        from minidem.engine.simulation import force_signature
+
+        law = laws.registry().entry(scene.law_name).law
+        called = laws.called_force(law)
+        if law.force_alone is not None and called is not None and not _cached(called):
+            called.compile(force_signature(law))
+    except Exception:
+        pass
 
 
 @atexit.register
