@@ -70,18 +70,22 @@ def test_the_run_loads_the_kernel_the_helper_compiled_beside_the_check(tmp_path)
     """On a fresh install `minidem run` starts a helper compiling the scene's kernel while
     the check of overlapping spheres compiles the neighbour search; the run then loads
     that kernel from the cache (a cache hit, no compilation of its own): the helper built
-    the same Simulation and the same argument types as the run."""
-    found, env = _load_with_helper(tmp_path, "scenarios/bench/settle.toml")
+    the same Simulation and the same argument types as the run. scenarios/settle.toml's
+    law is a combination (hm+epsd+sds_twisting): before the check the run's process also
+    compiles its force_alone, the law's copy the kernel calls at a wall
+    (warmup._compile_called_force), which the helper's kernel then loads."""
+    scene = "scenarios/settle.toml"
+    found, env = _load_with_helper(tmp_path, scene)
     if (os.cpu_count() or 1) < 2:  # no second CPU: no helper, the run compiles its kernel itself
         assert not found["started"] and found["advance"][1] == 1, found
         return
     assert found["started"], found
     # [cache hits, cache misses] of the kernel's advance in the run's process
     assert found["advance"][0] >= 1 and found["advance"][1] == 0, found
+    assert found["force_alone"] == [0, 1], found  # compiled once, here, before the check
     assert found["steps"] == 1, found
     # the next run finds the neighbour search cached: nothing to compile, no helper
-    again = subprocess.run([sys.executable, "-c", _LOAD_WITH_HELPER, "scenarios/bench/settle.toml"], env=env,
-                           capture_output=True, text=True)
+    again = subprocess.run([sys.executable, "-c", _LOAD_WITH_HELPER, scene], env=env, capture_output=True, text=True)
     assert again.returncode == 0, again.stderr
     assert not json.loads(again.stdout.strip().splitlines()[-1])["started"]
 
@@ -91,20 +95,6 @@ def _load_with_helper(tmp_path, scene: str):
     run = subprocess.run([sys.executable, "-c", _LOAD_WITH_HELPER, scene], env=env, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     return json.loads(run.stdout.strip().splitlines()[-1]), env
-
-
-def test_the_run_compiles_a_combinations_wall_force_while_the_helper_compiles_the_kernel(tmp_path):
-    """scenarios/settle.toml (a combination, hm+epsd+sds_twisting) on a fresh install: the
-    run's process compiles the combination's force_alone (the law's copy its kernel calls
-    at a wall) before the check of overlapping spheres, beside the helper compiling the
-    kernel (warmup._compile_called_force), and loads the kernel from the cache."""
-    found, _ = _load_with_helper(tmp_path, "scenarios/settle.toml")
-    if (os.cpu_count() or 1) < 2:
-        assert not found["started"], found
-        return
-    assert found["started"] and found["steps"] == 1, found
-    assert found["force_alone"] == [0, 1], found  # compiled once, here
-    assert found["advance"][0] >= 1 and found["advance"][1] == 0, found
 
 
 _COMBINATION_INLINED = """
