@@ -61,5 +61,6 @@ def minidem_register_laws(registry):
     minidem's own, and two plugins claiming a name are both refused.
 
     Nothing is compiled at registration: a law or a part costs nothing until a scenario
-    uses it; a combination is compiled once, into one kernel with its parts inlined.
+    uses it; a combination is compiled into its kernel with its parts inlined (its pair
+    contacts as vector code), and once on its own for the kernel's wall contacts.
     """

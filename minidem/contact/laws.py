@@ -793,6 +793,8 @@ def _declaration_problem(law) -> str | None:
                 f"got {law.aliases!r}")
     if law.parts != ():
         return "'parts' is minidem's own (the parts of a combination it composed); leave it empty"
+    if law.force_alone is not None:
+        return "'force_alone' is minidem's own (a combination's force compiled on its own); leave it None"
     if not isinstance(law.couples, bool):
         return f"'couples' must be True or False, got {law.couples!r}"
     return _compiled_function_problem(law.force, "force", law.force_arguments)

@@ -1464,14 +1464,19 @@ class _RunLoop:
         try:
             # the one compilation of this kernel, reported against the law that caused it; a
             # user waiting for it is told what it is
-            compiling = _notice_if_slow(sim.notify, f"compiling the kernel of law '{sim.law.name}' for this scene "
-                                        f"shape; it is cached in {cache_directory()} for later runs")
-            if kernel_helper is not None and kernel_helper.announced:
-                compiling = contextlib.nullcontext()  # the check's notice named this compilation already
-            with compiling:
-                if kernel_helper is not None:
+            def compiling():
+                return _notice_if_slow(sim.notify, f"compiling the kernel of law '{sim.law.name}' for this scene "
+                                       f"shape; it is cached in {cache_directory()} for later runs")
+
+            if kernel_helper is not None:
+                # the wait for the helper compiling the kernel: announced already by the
+                # check's notice when that took 2 s (one line for one compilation)
+                with contextlib.nullcontext() if kernel_helper.announced else compiling():
                     warmup.compile_shared(sim.pairs, meshes)
                     kernel_helper.wait()
+            # loaded from the cache when a helper compiled it; compiled here (and announced
+            # after 2 s) when none did, or it failed
+            with compiling():
                 with helper.law_compiled(laws.called_force(sim.law)):
                     self.compile_kernel()
                 helper.wait()
@@ -1795,6 +1800,7 @@ def _notice_if_slow(notify, text: str):
         yield
     finally:
         timer.cancel()
+        timer.join()  # a notice being printed is finished before the block's caller goes on
 
 
 def interrupted(exc: BaseException) -> bool:

@@ -345,7 +345,11 @@ def compile_for_run(law_name: str | None, shared: bool, pairs: bool, meshes: boo
             from minidem.engine.simulation import force_signature
 
             law = laws.registry().entry(law_name).law
-            laws.called_force(law).compile(force_signature(law))
+            called = laws.called_force(law)
+            if called is not None:
+                called.compile(force_signature(law))
+        except Exception:  # the run compiles it, and reports what fails, itself
+            pass
         finally:
             print("law", flush=True)  # compiled or not: the run must not wait any longer
     if shared:
