@@ -1,7 +1,8 @@
 """numba with minidem.engine.compile_speed installed: the inliner copies a callee's IR
 with one memo for all its blocks, which must be a faithful, independent deep copy, and
-the compiler flags give the values numba's own code gives (the kernels' machine code is
-the same with and without either; their results are checked by every physics test)."""
+the compiler flags give the values numba's own code gives, and a repeated call resolves
+from a memo to numba's own signature (the kernels' machine code is
+the same with and without any of them; their results are checked by every physics test)."""
 
 import copy
 
@@ -119,3 +120,53 @@ def test_the_callee_is_copied_once_per_inlining(monkeypatch):
         assert outer(2.5, 7) == _branchy(2.5, 7) + _branchy(3.5, 7)
         counts[skip] = len(copied)
     assert counts[False] > 0 and counts[True] * 2 == counts[False], counts
+
+
+def _mul_type():
+    import operator
+
+    from numba.core.registry import cpu_target
+
+    context = cpu_target.typing_context
+    context.refresh()
+    return context, context.resolve_value_type(operator.mul)
+
+
+def test_a_repeated_call_resolves_to_numbas_own_signature_and_implementation():
+    # repair 3: the memo gives the signature and implementation key numba's resolution
+    # gives (functools.wraps keeps numba's own as __wrapped__), and a hit sets the
+    # implementation key again, as a resolution does (the lowering reads the last one set)
+    from numba.core.types import functions
+
+    assert functions.BaseFunction.get_call_type._minidem_memo
+    plain = functions.BaseFunction.get_call_type.__wrapped__
+    context, mul = _mul_type()
+    args = (numba.types.float64, numba.types.float64)
+    own = plain(mul, context, args, {})
+    own_key = mul._impl_keys[own.args]
+    first = mul.get_call_type(context, args, {})
+    mul._impl_keys[own.args] = "set by another resolution"
+    again = mul.get_call_type(context, args, {})
+    assert first == own and again is first
+    assert mul._impl_keys[own.args] == own_key
+    # other argument types, and other compiler flags in force, are other keys
+    other = mul.get_call_type(context, (numba.types.int64, numba.types.float64), {})
+    assert other == plain(mul, context, (numba.types.int64, numba.types.float64), {})
+    flags = compiler.Flags()
+    flags.error_model = "numpy"
+    with targetconfig.ConfigStack().enter(flags):
+        under_flags = mul.get_call_type(context, args, {})
+    assert under_flags == own
+    keys = [key for key in mul.__dict__["_minidem_calls"] if key[1] == args]
+    assert len({key[3] is None for key in keys}) == 2, keys  # one without flags, one with
+
+
+def test_a_call_that_does_not_type_fails_each_time():
+    # a failed resolution is not kept: it raises again, with numba's message
+    import pytest
+
+    context, mul = _mul_type()
+    args = (numba.types.unicode_type, numba.types.float64)
+    for _ in range(2):
+        with pytest.raises(numba.core.errors.TypingError, match="No implementation of function"):
+            mul.get_call_type(context, args, {})
