@@ -264,7 +264,7 @@ def kernel_cache_path() -> Path:
 def prestart() -> None:
     """Start the helper of a first run now, before this process imports numba and the
     engine: ``minidem run`` calls this first thing. The helper imports them meanwhile
-    (0.3-0.4 s in either process) and then waits for its job (:func:`_spawn`: the law and
+    (0.3-0.4 s in either process, :func:`serve`) and then waits for its job (:func:`_spawn`: the law and
     the shared functions, or the scene's kernel), which the run decides once it has read
     the scene; or for none (:func:`dismiss`). Started from the run's process once its
     engine was imported, the helper spent its first 0.4 s importing while the run
@@ -299,7 +299,19 @@ def dismiss() -> None:
 
 def serve() -> None:
     """The prestarted helper's side: its job from the first line of standard input
-    (:func:`_spawn`); none when the input ends first."""
+    (:func:`_spawn`); none when the input ends first.
+
+    First it imports what every job needs, while the run reads its scene: numba and the
+    engine, and the registry of laws (the installed plugins). Imported after the job
+    arrived, as they were until 2026-11-27, they took the first 0.4-0.7 s of the job, on
+    the critical path of a scene whose kernel the helper compiles (settle.toml)."""
+    try:
+        from minidem.contact import laws
+        from minidem.engine import simulation  # noqa: F401  (numba, the engine's functions, compile_speed)
+
+        laws.registry()
+    except Exception:  # the job imports them again and the run reports what fails
+        pass
     line = sys.stdin.buffer.readline()
     if not line.strip():
         return
