@@ -34,9 +34,10 @@ A preset law's force function is compiled on its own and linked into the kernel,
 helper compiles it first (oblique: the hmd law, ~1.2 s) and the kernel's typing waits
 for it (:meth:`Helper.law_compiled`); a combination's is inlined into the kernel's tile
 of pair contacts and compiled with it, and its copy for walls (``force_alone``) is the
-one the helper compiles first (``minidem.contact.laws.called_force``). On a fresh install ``minidem run`` starts the helper
-before it imports numba and the engine (:func:`prestart`): the helper imports them while
-the run does, and is handed its job (either of the two above) once the run has read the
+one the helper compiles first (``minidem.contact.laws.called_force``). On a fresh
+install ``minidem run`` starts the helper before it imports numba and the engine
+(:func:`prestart`): the helper imports them while the run does (:func:`serve`), and is
+handed its job (either of the two above) once the run has read the
 scene; started after those imports, it reached the law ~0.35 s after the kernel's typing
 did. The helper imports from the run's ``sys.path`` (:func:`_python`), so that it
 compiles, and numba caches, the very files the run loads.
