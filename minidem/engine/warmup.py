@@ -265,8 +265,8 @@ def kernel_cache_path() -> Path:
 def prestart() -> None:
     """Start the helper of a first run now, before this process imports numba and the
     engine: ``minidem run`` calls this first thing. The helper imports them meanwhile
-    (0.3-0.4 s in either process, :func:`serve`) and then waits for its job (:func:`_spawn`: the law and
-    the shared functions, or the scene's kernel), which the run decides once it has read
+    (0.3-0.4 s in either process, :func:`serve`) and then waits for its job
+    (:func:`_spawn`: the law and the shared functions, or the scene's kernel), which the run decides once it has read
     the scene; or for none (:func:`dismiss`). Started from the run's process once its
     engine was imported, the helper spent its first 0.4 s importing while the run
     compiled, and the run's kernel then waited ~0.35 s for the law (first run of
@@ -354,15 +354,7 @@ def compile_for_run(law_name: str | None, shared: bool, pairs: bool, meshes: boo
     it would compile it itself), then the shared functions."""
     if law_name is not None:
         try:
-            from minidem.contact import laws
-            from minidem.engine.simulation import force_signature
-
-            law = laws.registry().entry(law_name).law
-            called = laws.called_force(law)
-            if called is not None:
-                called.compile(force_signature(law))
-        except Exception:  # the run compiles it, and reports what fails, itself
-            pass
+            _compile_called_force(law_name)
         finally:
             print("law", flush=True)  # compiled or not: the run must not wait any longer
     if shared:
@@ -405,7 +397,13 @@ def kernel_beside_check(scene, notify=None):
                                  "compiling the neighbour search for the check of overlapping spheres, "
                                  "and beside it the scene's kernel; both are cached in "
                                  f"{cache_directory()} for later runs"):
-                _compile_called_force(scene)
+                # a combination's force_alone, while the helper is still inlining the
+                # kernel (~2 s), so that the kernel's typing loads it from the cache (first
+                # run of scenarios/settle.toml: ~0.9 s here, ~1.8 s less on the critical
+                # path). Not a preset law's force: the helper's new kernel drops the cached
+                # code of the functions its law calls (simulation.compile_kernel), which
+                # could undo this process's work
+                _compile_called_force(scene.law_name, combination_only=True)
                 yield
     except BaseException:
         helper.stop()
@@ -414,20 +412,18 @@ def kernel_beside_check(scene, notify=None):
         _KERNEL_HELPERS[id(scene)] = (scene, helper)
 
 
-def _compile_called_force(scene) -> None:
-    """The force the scene's kernel calls at a wall, when it is a combination's
-    ``force_alone`` (a preset law's force is cached with the first kernel of that law):
-    compiled here, before the check, while the helper's kernel is still being inlined
-    (~2 s), so that the kernel's typing loads it from the cache instead of compiling it
-    (first run of scenarios/settle.toml: ~0.9 s here, ~1.8 s less for the kernel, the
-    run's critical path). Whatever fails here the kernel compiles, and reports, itself."""
+def _compile_called_force(law_name: str, combination_only: bool = False) -> None:
+    """Compile (into numba's cache) the force function the kernel of law ``law_name`` calls
+    at a wall (``laws.called_force``), for the types the kernel passes it; with
+    ``combination_only``, only a combination's ``force_alone``. Whatever fails here the
+    kernel compiles, and reports, itself."""
     try:
         from minidem.contact import laws
         from minidem.engine.simulation import force_signature
 
-        law = laws.registry().entry(scene.law_name).law
+        law = laws.registry().entry(law_name).law
         called = laws.called_force(law)
-        if law.force_alone is not None and called is not None and not _cached(called):
+        if called is not None and not (combination_only and law.force_alone is None) and not _cached(called):
             called.compile(force_signature(law))
     except Exception:
         pass
