@@ -266,8 +266,8 @@ def prestart() -> None:
     """Start the helper of a first run now, before this process imports numba and the
     engine: ``minidem run`` calls this first thing. The helper imports them meanwhile
     (0.3-0.4 s in either process, :func:`serve`) and then waits for its job
-    (:func:`_spawn`: the law and the shared functions, or the scene's kernel), which the run decides once it has read
-    the scene; or for none (:func:`dismiss`). Started from the run's process once its
+    (:func:`_spawn`: the law and the shared functions, or the scene's kernel), which the
+    run decides once it has read the scene; or for none (:func:`dismiss`). Started from the run's process once its
     engine was imported, the helper spent its first 0.4 s importing while the run
     compiled, and the run's kernel then waited ~0.35 s for the law (first run of
     scenarios/oblique.toml, idle 2-core AMD EPYC).
