@@ -549,7 +549,7 @@ _HEADINGS = {"single-impact": "## Single impact: engine error against the refere
              "multi-particle": "## Multi-particle throughput",
              "multi-particle-scale": "## Multi-particle throughput at scale",
              "memory-order": "## Memory order against N",
-             "compile": "## Compile time of each contact model"}
+             "compile": "## Compile time and first runs"}
 
 
 def update_sections(path: Path, sections: dict[str, str]) -> None:

@@ -168,7 +168,7 @@ def section_scenes(rows: list[dict]) -> str:
 
 
 def section(rows: list[dict], command: str, stamp) -> str:
-    lines = [f"*{stamp(command)}*", "",
+    lines = ["## Compile time and first runs", "", f"*{stamp(command)}*", "",
              "Each shipped law and combination compiles into its own kernel, once (then loaded from the "
              "cache). Measured in a fresh process per combination, on a copy of a cache holding the engine's "
              "shared functions (one run of `hm`), so 'cold' is the combination's own kernel and parts: "
