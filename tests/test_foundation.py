@@ -343,3 +343,29 @@ def test_bench_sizes_are_checked_and_the_million_sphere_variant_fits_its_box():
     assert bench_multi.box_height(20_000) is None  # the shipped box holds the default sizes
     assert (bench_multi.steps_for(20_000), bench_multi.steps_for(200_000), bench_multi.steps_for(n)) == (
         10_000, 10_000, 2_000)
+
+
+def test_bench_finds_the_clone_it_measures_or_says_where_it_looked(tmp_path):
+    # `pip install .` copies the package alone into site-packages: `minidem bench` then
+    # finds the clone (scenarios/, docs/) from the working directory or a folder above it,
+    # and refuses with the folders it searched when there is none (a new user's report,
+    # 2026-11-27: it stopped with "no such scenario file .../site-packages/scenarios/...")
+    from minidem.studies import checkout
+
+    installed = tmp_path / "site-packages"
+    (installed / "minidem").mkdir(parents=True)
+    clone = tmp_path / "clone"
+    (clone / "scenarios").mkdir(parents=True)
+    (clone / "pyproject.toml").write_text("")
+    (clone / "scenarios" / "oblique.toml").write_text("")
+    (clone / "out" / "deep").mkdir(parents=True)
+    assert checkout.find_root(installed, clone) == clone
+    assert checkout.find_root(installed, clone / "out" / "deep") == clone
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    lost = checkout.find_root(installed, elsewhere)
+    with pytest.raises(checkout.NoCheckout, match="clone of minidem"):
+        checkout.require(lost)
+    # this test runs from a clone (or an editable install of one)
+    assert checkout.require() == checkout.ROOT
+    assert (checkout.ROOT / "scenarios" / "bench" / "settle.toml").is_file()

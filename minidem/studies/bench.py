@@ -38,11 +38,11 @@ import tempfile
 import time
 from pathlib import Path
 
-from minidem.studies import reference
+from minidem.studies import checkout, reference
 
 MEASURES = ("y1", "y2", "et")
-SCENARIO = Path(__file__).resolve().parents[2] / "scenarios" / "oblique.toml"
-DOCS = Path(__file__).resolve().parents[2] / "docs"
+SCENARIO = checkout.ROOT / "scenarios" / "oblique.toml"
+DOCS = checkout.ROOT / "docs"
 DEFAULT_STEPS_PER_CONTACT = 4000  # scenario.py's run.steps_per_contact default
 TARGET_ERROR = 1e-4  # issue 5: every paper case within 1e-4 of the reference at the default
 REFERENCE_RTOL = (1e-10, 1e-12)
@@ -247,7 +247,7 @@ def model_only(rounds: int, steps_per_contact: int = DEFAULT_STEPS_PER_CONTACT, 
 _SWEEP_SCRIPT = """
 import json, sys, tempfile, time
 started = time.perf_counter()
-from minidem.studies import reference
+from minidem.studies import checkout, reference
 from minidem.scene import scenario
 from minidem.studies import sweep
 from minidem.studies.bench import SCENARIO
@@ -647,6 +647,11 @@ def run(quick: bool = False, docs: Path = DOCS, sections=ALL_SECTIONS, echo=prin
 
 
 def command(args) -> int:
+    try:
+        checkout.require()
+    except checkout.NoCheckout as exc:
+        print(f"minidem: error: {exc}", file=sys.stderr)
+        return 2
     run(quick=args.quick, docs=args.docs or DOCS, sections=tuple(args.only) if args.only else ALL_SECTIONS,
         sizes=args.sizes, variants=args.variants, steps=args.steps)
     return 0

@@ -30,8 +30,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from minidem.studies import checkout
+
 # the shipped scenes a newcomer runs first (README, docs/scenarios.md)
-SCENES = Path(__file__).resolve().parents[2] / "scenarios"
+SCENES = checkout.ROOT / "scenarios"
 
 # (name shown, the [contact] table): the paper's laws, the parts forms of two of them,
 # every shipped rolling and twisting part with hertz + tsuji + mindlin, and the

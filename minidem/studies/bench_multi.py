@@ -27,8 +27,9 @@ import time
 from pathlib import Path
 
 from minidem.engine import simulation
+from minidem.studies import checkout
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = checkout.ROOT
 SETTLE = ROOT / "scenarios" / "bench" / "settle.toml"
 SHARED_BENCH = ROOT.parent / "shared" / "bench" / "liggghts"
 STEPS, DT = 10_000, 2e-5

@@ -28,7 +28,9 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+from minidem.studies import checkout
+
+ROOT = checkout.ROOT
 DEFAULT_SCENARIO = ROOT / "scenarios" / "bench" / "sweep500.toml"
 
 
