@@ -90,3 +90,57 @@ def test_a_force_writing_past_its_declared_history_is_caught(tmp_path, monkeypat
     assert check.passed is False and "wrote history[1]" in check.value and "declares 1 slot" in check.value
     [sound] = verify.Battery("hm").history_bounds()
     assert sound.passed is True
+
+
+SPRING_PLUGIN = '''
+import numba
+
+from minidem import hookimpl
+from minidem.contact.laws import ContactLaw, Parameter
+
+
+@numba.njit
+def spring_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+                 normal_velocity, tangential_increment, tangential_velocity, history):
+    return constants[0] * normal_overlap, 0.0, 0.0, 0.0
+
+
+def prepare(pair, params):
+    return {"kn": params["normal_stiffness"]}
+
+
+@hookimpl
+def minidem_register_laws(registry):
+    registry.add(ContactLaw(
+        name="plain_spring", description="frictionless linear spring, no contact_time declared",
+        constants=("kn",), parameters=(Parameter("normal_stiffness", None, "N/m", "kn", low=0.0, required=True),),
+        history=(), prepare=prepare, force=spring_force, frictional=False))
+'''
+
+
+def test_a_frictionless_law_without_contact_time_is_checked_not_refused(tmp_path, monkeypatch):
+    """A plugin author's first law (a new user's report, 2026-11-27): a frictionless linear
+    spring that declares no contact_time. The battery must not add the paper's friction to
+    a law that has none (it refused the scene, or stopped on a KeyError with the contact
+    table given whole), must skip the sliding limit (Coulomb's), and must not call the
+    spring's energy gain at separation (velocity Verlet's ~1e-7 when dt, chosen for the
+    Hertz duration, does not divide its contact into whole steps) energy creation: the
+    bound is the engine's, 10 (dt/tc)^2 and at least 1e-6 (analysis.energy_gain_bound),
+    which the integral law's 1.2e-2 exceeds (test_integral_law_is_caught_creating_energy)."""
+    import importlib
+
+    from minidem.contact import laws
+
+    (tmp_path / "plain_spring_plugin.py").write_text(SPRING_PLUGIN)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    registry = laws.load_registry(extra_plugins=(importlib.import_module("plain_spring_plugin"),))
+    assert not registry.broken, registry.broken
+    monkeypatch.setattr(laws, "_REGISTRY", registry)
+    for overrides in (["contact.normal_stiffness=1e8"], ['contact={law="plain_spring", normal_stiffness=1e8}']):
+        battery = verify.Battery("plain_spring", overrides)
+        checks = by_name(battery.energy() + battery.sliding_limit())
+        energy = checks["elastic impacts create no energy"]
+        assert energy.passed is True, energy.value
+        # it does gain a little: the bound is what lets it pass, not a gain of zero
+        assert "1.00000" in energy.value
+        assert checks["rigid-body sliding limit"].passed is None

@@ -49,13 +49,19 @@ class Check:
 class Battery:
     def __init__(self, law_name: str, overrides: list[str] = ()):
         named = laws.registry().entry(law_name)
-        self.base = scenario.apply_overrides(PAPER_SCENE, [f'contact.law="{named.law.name}"', *overrides])
+        base = copy.deepcopy(PAPER_SCENE)
+        if not any(p.name == "friction" for p in named.law.parameters):
+            # the paper's mu = 0.1 is for a law with friction: a frictionless law refuses the key
+            del base["contact"]["friction"]
+        self.base = scenario.apply_overrides(base, [f'contact.law="{named.law.name}"', *overrides])
         # the law the scenes run: the named one with the parts the overrides add
         # (--set contact.rolling=epsd makes hm the combination hm+epsd, whose history,
         # parameters and parts every check must see)
         self.entry = self._entry_as_run(named)
         self.law = self.entry.law
-        self.friction = float(self.base["contact"]["friction"])
+        # mu of the law under test, the paper's for a law without friction (the HMD runs
+        # it is compared with, and the rigid-body lines of the report, take it)
+        self.friction = float(self.base["contact"].get("friction", PAPER_SCENE["contact"]["friction"]))
 
     def _entry_as_run(self, named: laws.RegisteredLaw) -> laws.RegisteredLaw:
         try:
@@ -94,10 +100,22 @@ class Battery:
     # -- the checks ---------------------------------------------------------------
     def energy(self) -> list[Check]:
         elastic = ["contact.restitution=1.0"] if self.has_parameter("restitution") else []
-        ratios = {a: self.run(f"impact.angle_deg={a}", *elastic)[0]["energy_ratio"] for a in PAPER_ANGLES}
-        worst = max(ratios, key=ratios.get)
-        checks = [Check("elastic impacts create no energy", ratios[worst] <= 1.0 + 1e-9,
-                        f"max energy ratio {ratios[worst]:.10f} at {worst:g} deg", "<= 1 + 1e-9 at every angle",
+        # the gain each impact may show from velocity Verlet alone: the engine's own bound
+        # (analysis.energy_gain_bound: 10 (dt/tc)^2, at least 1e-6). Not a fixed 1e-9: that
+        # holds only where dt divides the contact into whole steps (the built-in laws' auto
+        # dt, tc / 4000); a sound plugin law without contact_time ends its contact
+        # mid-step and gains ~1e-7 (a linear spring, 2026-11-27), while the integral form
+        # the paper warns about (Fig 12) gains 1e-2
+        gains = {}
+        for angle in PAPER_ANGLES:
+            summary = self.run(f"impact.angle_deg={angle}", *elastic)[0]
+            bound = analysis.energy_gain_bound(summary["dt_s"], summary["contact_duration_s"] or math.inf)
+            gains[angle] = (summary["energy_ratio"] - 1.0, bound)
+        worst = max(gains, key=lambda a: gains[a][0] / gains[a][1])
+        gain, bound = gains[worst]
+        checks = [Check("elastic impacts create no energy", gain <= bound,
+                        f"max energy ratio {1.0 + gain:.10f} at {worst:g} deg (integration bound {bound:.2g})",
+                        "energy ratio <= 1 + integration error (10 (dt/tc)^2, at least 1e-6) at every angle",
                         "an elastic contact can only store and return energy; the paper's Fig 12 shows the "
                         "integral form violating this")]
         skipped = self.skipped_for_adhesion("restitution 0.5 reproduced (normal impact)",
@@ -120,6 +138,9 @@ class Battery:
             return [Check("rigid-body sliding limit", None, f"skipped: the combination has a {resisting[0]}",
                           "not applicable: paper eqs 6-8 assume no rolling or twisting resistance",
                           "paper eqs 6-8")]
+        if not self.has_parameter("friction"):
+            return [Check("rigid-body sliding limit", None, "skipped: the law has no friction parameter",
+                          "not applicable: paper eqs 6-8 are the limit of Coulomb friction", "paper eqs 6-8")]
         mu, worst = self.friction, 0.0
         for angle in SLIDING_ANGLES:
             s = self.run(f"impact.angle_deg={angle}")[0]
