@@ -8,6 +8,7 @@ creates energy over its first force-displacement loop at 5 deg.
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 from minidem.studies import verify
 
@@ -144,3 +145,32 @@ def test_a_frictionless_law_without_contact_time_is_checked_not_refused(tmp_path
         # it does gain a little: the bound is what lets it pass, not a gain of zero
         assert "1.00000" in energy.value
         assert checks["rigid-body sliding limit"].passed is None
+
+
+def test_a_contact_far_shorter_than_the_automatic_time_step_assumed_is_reported(tmp_path, monkeypatch):
+    """run.dt = "auto" takes steps_per_contact steps of the law's contact_time, or of the
+    Hertz duration when the law declares none. A stiff linear spring without contact_time
+    (kn = 1e14 N/m at the paper's impact: pi sqrt(m*/kn) = 1.3e-7 s, a thousandth of Hertz's
+    1.3e-4 s) then lasted 4 steps, and the run reported en = 1.02 with no warning (a new
+    user's report, 2026-11-27). The summary must say the rebound is under-resolved and
+    why; the same law at kn = 1e8 (its contact about as long as Hertz's) gets no such
+    warning, nor does a built-in law."""
+    import importlib
+
+    from minidem import api
+    from minidem.contact import laws
+
+    (tmp_path / "plain_spring_plugin.py").write_text(SPRING_PLUGIN)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    registry = laws.load_registry(extra_plugins=(importlib.import_module("plain_spring_plugin"),))
+    monkeypatch.setattr(laws, "_REGISTRY", registry)
+    scenario_file = Path(__file__).resolve().parents[1] / "scenarios" / "oblique.toml"
+
+    def warnings_of(**overrides):
+        return api.run(scenario_file, overrides).summary["warnings"]
+
+    stiff = warnings_of(**{"contact": {"law": "plain_spring", "normal_stiffness": 1e14}})
+    assert any("under-resolved" in w and "declares no contact_time" in w for w in stiff), stiff
+    assert not any("under-resolved" in w for w in warnings_of(**{"contact": {"law": "plain_spring",
+                                                                             "normal_stiffness": 1e8}}))
+    assert warnings_of() == []

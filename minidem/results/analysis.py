@@ -140,6 +140,34 @@ def energy_budget_warning(result: RunResult) -> str | None:
             "role (docs/time-step.md)")
 
 
+# An automatic time step is run.steps_per_contact steps of the contact time the law
+# declares (or Hertz's, eq 13, when it declares none). A contact measured ten times
+# shorter than that was not resolved as asked: the law's contact is not the one assumed.
+UNDER_RESOLVED_FRACTION = 0.1
+
+
+def resolution_warning(result: RunResult, duration) -> str | None:
+    """A warning if the measured contact (an impact or a two-sphere collision) lasted fewer
+    than UNDER_RESOLVED_FRACTION of the steps an automatic time step aims at: the contact
+    time that dt was chosen from is not the law's (a plugin law that declares no
+    contact_time gets the Hertz duration), and the rebound is under-resolved, however
+    plausible it looks. None for a time step the scenario gave."""
+    scene = result.scene
+    if not duration or not result.dt or not str(result.dt_reason).startswith("auto"):
+        return None
+    steps = duration / result.dt
+    if steps >= UNDER_RESOLVED_FRACTION * scene.steps_per_contact:
+        return None
+    law = result.law
+    cause = (f"law '{law.name}' declares no contact_time, so run.dt = \"auto\" assumed the Hertz duration "
+             "(eq 13): declare contact_time (docs/writing-a-contact-law.md) or give run.dt"
+             if law.contact_time is None else
+             f"the contact time law '{law.name}' declares is not the one measured: check it, or give run.dt")
+    return (f"the contact lasted {duration:.3g} s, {steps:.3g} steps of dt = {result.dt:.3g} s, against the "
+            f"{scene.steps_per_contact} steps per contact run.dt = \"auto\" aims at ({result.dt_reason}): the "
+            f"rebound is under-resolved; {cause}")
+
+
 SUMMARY_KEYS = ("law", "angle_deg", "speed", "en", "et", "x", "y1", "y2", "contact_duration_s", "max_overlap_m",
                 "energy_ratio", "steps", "dt_s", "wall_time_s", "warnings")
 
@@ -168,7 +196,7 @@ def summary(result: RunResult) -> dict:
                 if result.first_contact_time >= 0 and result.last_separation_time >= 0 else None)
     ratio = energy_ratio(result)
     warnings = [w for w in (incomplete_contact(result), _impact_energy_warning(result, ratio, duration),
-                            energy_budget_warning(result)) if w]
+                            energy_budget_warning(result), resolution_warning(result, duration)) if w]
     out.update({
         "contact_duration_s": duration,
         "max_overlap_m": result.max_overlap if result.contact_statistics else None,
