@@ -79,7 +79,9 @@ def command_run(args) -> int:
     from minidem.engine import warmup
 
     data = scenario.read_toml(args.file)
-    if sweep.has_sweep(data):
+    # --set sweep.KEY=... makes a sweep of a file without [sweep] (checked as one): a single
+    # run ignored it, and an unknown key with it
+    if sweep.has_sweep(data) or sweep.has_sweep(scenario.apply_overrides(data, args.set or [])):
         warmup.dismiss()  # a sweep's cases run in their own processes
         if args.resume and args.restart:
             raise scenario.ScenarioError(f"{args.file}: --resume and --restart contradict each other: a sweep "

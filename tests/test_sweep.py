@@ -185,6 +185,20 @@ def test_failed_case_is_reported_in_its_row_and_the_sweep_goes_on(tmp_path):
         assert row["error"] is None and 0.0 < row["et"] < 1.0 and row["energy_ratio"] <= 1.0 + 1e-9
 
 
+
+def test_sweep_keys_given_with_set_make_a_sweep_of_a_single_run_file(tmp_path, capsys):
+    """`--set` overrides any scenario value (docs/cli.md), [sweep] too: on a file without
+    [sweep] a single run used to ignore `--set sweep.cases=...` (one run at the file's
+    angle, no sweep.csv, exit 0) and accept `--set sweep.bogus=1` (a new user's report,
+    2026-11-27). The sweep is now made and checked as one written in the file."""
+    bad = cli.main(["run", str(OBLIQUE), "--out", str(tmp_path / "bad"), "--quiet", "--set", "sweep.bogus=1"])
+    assert bad == 2 and "sweep.bogus: unknown key" in capsys.readouterr().err
+    code = cli.main(["run", str(OBLIQUE), "--out", str(tmp_path / "out"), "--quiet", "--workers", "1",
+                     "--set", 'sweep.cases={"impact.angle_deg"=[10.0, 45.0]}', "--set", "sweep.figures=[]"])
+    assert code == 0
+    rows = sweep.load_rows(tmp_path / "out" / "sweep.csv")
+    assert [r["angle_deg"] for r in rows] == [10.0, 45.0] and all(r["status"] == "ok" for r in rows)
+
 # ---------------------------------------------------------------------------------
 # separate processes: a killed `minidem run`, and a real Dask cluster
 # ---------------------------------------------------------------------------------
