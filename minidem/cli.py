@@ -13,6 +13,7 @@ import json
 import os
 import signal
 import sys
+import time
 import warnings
 from pathlib import Path
 
@@ -118,9 +119,13 @@ def command_run(args) -> int:
 
         frames = SimulationFrames(sim, directory)
     previous_sigterm = signal.signal(signal.SIGTERM, _terminate)
+    started = time.time()
     with _progress_bar(scene, args.quiet, sim.dt) as progress:
         try:
             result = sim.run(progress=progress, on_frame=frames, checkpoints=policy, resume_from=resume_from)
+        except simulation.RunFailure:
+            _set_aside_earlier_results(directory, started)
+            raise
         except KeyboardInterrupt:
             if sim.interrupted_at is not None:
                 time_s, path = sim.interrupted_at
@@ -145,6 +150,27 @@ def command_run(args) -> int:
         print(f"  {result.steps} steps in {result.wall_time:.3g} s: {rate:.4g} steps/s, "
               f"{rate * scene.n_particles:.4g} particle-steps/s on {result.threads} thread(s)")
     return EXIT_OK
+
+
+def _set_aside_earlier_results(directory: Path, started: float) -> None:
+    """A run that failed leaves no summary or final state of its own, so those of an
+    earlier run in the same directory would read as this run's (a script checking
+    summary.json saw the old success): they are renamed *.previous.*, kept, and said so."""
+    from minidem.engine import checkpoint
+
+    moved = []
+    for name in ("summary.json", checkpoint.FINAL_STATE):
+        path = directory / name
+        try:
+            if path.stat().st_mtime < started:
+                target = path.with_name(f"{path.stem}.previous{path.suffix}")
+                path.replace(target)
+                moved.append(f"{name} -> {target.name}")
+        except OSError:  # absent (the usual case), or not movable: left as it is
+            continue
+    if moved:
+        print(f"minidem: the earlier run's results in {directory} are not this run's: renamed {', '.join(moved)}",
+              file=sys.stderr)
 
 
 def _particle_counts(text: str) -> tuple[int, ...]:

@@ -20,6 +20,7 @@ import sys
 import textwrap
 import time
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -276,6 +277,23 @@ def test_blow_up_stops_with_the_last_good_state_and_a_time_step_to_try(tmp_path)
     assert float(last_frame.get("timestep")) == meta["time"]
     assert_files_complete(tmp_path, 300)
 
+
+
+def test_a_failed_run_does_not_leave_an_earlier_runs_results_looking_like_its_own(tmp_path):
+    # A run into a directory where an earlier run succeeded, then a blow-up: the failed run
+    # writes no summary, so the earlier summary.json and final_state.npz would read as its
+    # result (a script checking summary.json saw success; a new user's report, 2026-11-27).
+    # They are kept, renamed *.previous.*, and the run says so; its own last_good.npz is there.
+    oblique = Path(__file__).resolve().parents[1] / "scenarios" / "oblique.toml"
+    assert run_cli("run", oblique, "--out", tmp_path, "--quiet").returncode == 0
+    earlier = (tmp_path / "summary.json").read_bytes()
+    done = run_cli("run", oblique, "--out", tmp_path, "--quiet", "--set", "run.dt=2e-4", "--set",
+                   "run.allow_unstable_dt=true")
+    assert done.returncode == 1 and "minidem: run failed: blow-up" in done.stderr, done.stderr
+    assert "renamed summary.json -> summary.previous.json, final_state.npz -> final_state.previous.npz" in done.stderr
+    assert not (tmp_path / "summary.json").exists() and not (tmp_path / checkpoint.FINAL_STATE).exists()
+    assert (tmp_path / "summary.previous.json").read_bytes() == earlier
+    assert (tmp_path / checkpoint.LAST_GOOD).exists()
 
 @pytest.fixture(scope="module")
 def settle_guard():

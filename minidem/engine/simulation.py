@@ -1284,10 +1284,10 @@ class Simulation:
             # and roughly resolved; never less than a tenfold reduction
             suggestion = min(self.dt / 10.0, tc / 50.0)
             why = f"the shortest contact lasts about {tc:.3g} s, {tc / self.dt:.3g} steps of the current one"
-            if self.law.contact_time is None:
+            if self.law.contact_time is None and self.entry.distribution != "minidem":
                 # a plugin law without contact_time: tc is Hertz's, not necessarily the law's
-                why += (f" (the Hertz duration, eq 13: law '{self.law.name}' declares no contact_time, and its "
-                        "contact may be much shorter)")
+                # (minidem's own laws without one are Hertz laws)
+                why += f" (Hertz's, eq 13, assumed: law '{self.law.name}' declares no contact_time)"
         else:
             suggestion, why = self.dt / 10.0, "a tenth of the current one"
         return f"try run.dt = {suggestion:.3g} s ({why}; now {self.dt:.3g} s, {self.dt_reason})"
