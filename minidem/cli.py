@@ -145,10 +145,14 @@ def command_run(args) -> int:
         for warning in summary["warnings"]:
             print(f"  warning: {warning}")
         print(f"  wrote {directory / 'summary.json'}, {directory / checkpoint.FINAL_STATE}"
-              + (f", {frames.pvd_path} ({frames.frames} frames)" if frames is not None else ""))
-        rate = result.steps / result.wall_time if result.wall_time > 0 else float("inf")
-        print(f"  {result.steps} steps in {result.wall_time:.3g} s: {rate:.4g} steps/s, "
-              f"{rate * scene.n_particles:.4g} particle-steps/s on {result.threads} thread(s)")
+              + (f", {frames.pvd_path} ({frames.frames} frames)" if frames is not None else "")
+            + (f", {frames.walls_path}" if frames is not None and frames.walls_path is not None else ""))
+        # a resumed run timed only the steps after its checkpoint
+        steps_here = result.steps - (resume_from[1]["step"] if resume_from is not None else 0)
+        rate = steps_here / result.wall_time if result.wall_time > 0 else float("inf")
+        print(f"  {steps_here} steps in {result.wall_time:.3g} s: {rate:.4g} steps/s, "
+              f"{rate * scene.n_particles:.4g} particle-steps/s on {result.threads} thread(s)"
+              + (f" (resumed at step {resume_from[1]['step']})" if resume_from is not None else ""))
     return EXIT_OK
 
 
