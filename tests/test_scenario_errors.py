@@ -160,6 +160,10 @@ CASES = {
     "set_empty_key_part": (None, ["--set", "impact..angle_deg=3"], ["--set", "empty key part"]),
     "set_into_a_value": (None, ["--set", "impact.angle_deg.x=3"], ["'impact.angle_deg' is a value, not a table"]),
     "set_wrong_type": (None, ["--set", "impact.angle_deg=steep"], ["impact.angle_deg", "expected a number (deg)"]),
+    # a misspelt contact key is suggested as the key it resembles, not only listed against
+    # the law's parameters (a new user's report, 2026-11-27)
+    "misspelt_contact_key": (None, ["--set", "contact.rollingg=epsd"],
+                             ["unknown parameter 'rollingg'", "did you mean the contact key 'rolling'?"]),
 }
 
 

@@ -599,6 +599,13 @@ def _contact_law(contact: dict, material_index: dict, raw_materials: dict, error
     law_parameters, law_errors = law.resolve_parameters(given)
     for message in law_errors:
         errors.add("contact", message)
+    for key in given:
+        # a misspelt key of the contact table itself (contact.rollingg = "epsd"), which the
+        # law's parameter list alone neither names nor suggests
+        close = difflib.get_close_matches(key, ("law", "pairs", *_PART_KEYS), n=1, cutoff=0.75)
+        if close and not any(p.name == key for p in law.parameters):
+            errors.add("contact", f"'{key}': did you mean the contact key '{close[0]}'? (contact keys: law, "
+                                  f"pairs, {', '.join(_PART_KEYS)}; the law's parameters are listed above)")
     pair_parameters = {}
     pairs = contact.get("pairs")
     if isinstance(pairs, dict):
