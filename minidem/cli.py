@@ -95,6 +95,8 @@ def command_run(args) -> int:
     # overlapping spheres compiles the neighbour search here
     scene = scenario.load_scene(args.file, args.set, args.out, while_checking=functools.partial(
         warmup.kernel_beside_check, notify=None if args.quiet else _note))
+    if args.resume:
+        checkpoint.require_checkpoint(scene.source, scene.output_directory)
     directory = scenario.prepare_output_directory(scene.output_directory, scenario.output_origin(args.out, scene.raw), args.file)
     sim = simulation.Simulation(scene, notify=None if args.quiet else _note)
     policy = checkpoint.Policy(directory, scene.checkpoint_interval, scene.checkpoint_wall_interval)

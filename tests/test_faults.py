@@ -204,6 +204,11 @@ def test_interrupted_impact_resumes_bit_for_bit_and_refuses_another_scenario(tmp
     # and with nothing left to resume
     assert cli.main(args) == cli.EXIT_BAD_INPUT
     assert "has finished" in capsys.readouterr().err
+    # and a --resume into a directory that holds no run creates nothing (it made the
+    # directory before refusing; a new user's report, 2026-11-27)
+    nowhere = tmp_path / "never_run"
+    assert cli.main(["run", str(OBLIQUE), "--out", str(nowhere), "--resume", "--quiet"]) == cli.EXIT_BAD_INPUT
+    assert "no checkpoint" in capsys.readouterr().err and not nowhere.exists()
 
 
 # --------------------------------------------------------------------------------------

@@ -113,20 +113,29 @@ def read(path: str | Path) -> tuple[dict, dict]:
     return arrays, meta
 
 
-def load_for_resume(sim, directory: str | Path) -> tuple[dict, dict]:
-    """The checkpoint in ``directory`` if it belongs to this simulation; otherwise a
-    ScenarioError that says why and what to do (the CLI exits with code 2)."""
+def require_checkpoint(source: str, directory: str | Path) -> Path:
+    """The checkpoint's path in ``directory``, or a ScenarioError saying why there is none
+    (checked before the output directory is made: a refused --resume creates nothing)."""
     from minidem.scene.scenario import ScenarioError
 
     path = Path(directory) / CHECKPOINT
     if not path.exists():
         finished = (Path(directory) / FINAL_STATE).exists()
         raise ScenarioError(
-            f"{sim.scene.source}: --resume: no checkpoint {path}"
+            f"{source}: --resume: no checkpoint {path}"
             + ("; the run in this directory has finished (final_state.npz)" if finished else
                "; the run wrote none (checkpoints are written every output.checkpoint_interval of simulated "
                "time or output.checkpoint_wall_interval of wall-clock time)")
             + "; run without --resume to start from t = 0")
+    return path
+
+
+def load_for_resume(sim, directory: str | Path) -> tuple[dict, dict]:
+    """The checkpoint in ``directory`` if it belongs to this simulation; otherwise a
+    ScenarioError that says why and what to do (the CLI exits with code 2)."""
+    from minidem.scene.scenario import ScenarioError
+
+    path = require_checkpoint(sim.scene.source, directory)
     try:
         arrays, meta = read(path)
     except Exception as exc:  # noqa: BLE001 - any unreadable file is the same user error
