@@ -414,7 +414,9 @@ def test_a_force_function_that_does_not_compile_names_law_and_plugin(fake_site, 
 
 def test_a_failing_prepare_names_law_materials_and_cause(fake_site, monkeypatch):
     registry = load("fake_good")
-    with pytest.raises(laws.LawError, match="fake_bad_prepare.*prepare\\(\\) failed.*glass.*no stiffness"):
+    # the scenario file and its contact table are named too: the refused values are there
+    with pytest.raises(laws.LawError, match="^fake.toml: contact: law 'fake_bad_prepare'.*prepare\\(\\) failed"
+                                            ".*glass.*no stiffness"):
         simulation.Simulation(_fake_scene("fake_bad_prepare", registry, monkeypatch), registry=registry)
 
 

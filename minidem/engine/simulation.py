@@ -892,8 +892,10 @@ class Simulation:
                     # a ValueError is how prepare() refuses parameters (its message is for the
                     # user); anything else is a bug in it: say what and where
                     why = str(exc) if type(exc) is ValueError else laws._one_line(exc)
-                    raise laws.LawError(f"law '{law.name}' ({self.entry.distribution}): prepare() failed for "
-                                        f"materials '{materials[a].name}'/'{materials[b].name}': {why}") from exc
+                    # the scenario and its key too: the values prepare() refused are the user's
+                    raise laws.LawError(f"{scene.source}: contact: law '{law.name}' ({self.entry.distribution}): "
+                                        f"prepare() failed for materials '{materials[a].name}'/"
+                                        f"'{materials[b].name}': {why}") from exc
                 self.pair_row[a, b] = self.pair_row[b, a] = len(rows)
                 rows.append(row)
                 self.pairs_[(a, b)] = pair
