@@ -369,3 +369,13 @@ def test_sweep_names_the_laws_that_created_energy():
              "contact_duration_s": None}]
     notes = sweep._energy_gain_notes(rows)
     assert len(notes) == 1 and "'lth'" in notes[0] and "1 case(s)" in notes[0] and "1.0125" in notes[0]
+
+
+def test_a_warning_of_the_plan_is_printed_once_not_again_by_its_case(tmp_path, capsys):
+    # run.allow_unstable_dt's warning comes from the case's Simulation: plan() shows it,
+    # and the case's own run printed it a second time (a new user's report, 2026-11-27)
+    code = cli.main(["run", str(OBLIQUE), "--out", str(tmp_path / "out"), "--quiet", "--workers", "1",
+                     "--set", 'sweep.cases={"impact.angle_deg"=[10.0]}', "--set", "sweep.figures=[]",
+                     "--set", "run.dt=5e-5", "--set", "run.allow_unstable_dt=true"])
+    assert code == 0
+    assert capsys.readouterr().err.count("allowed by run.allow_unstable_dt") == 1

@@ -314,10 +314,13 @@ def run_case(case: Case) -> dict:
     started = wallclock.perf_counter()
     try:
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # plan() has shown them once already
+            # plan() has shown them once already: the scene's and its Simulation's (the
+            # stability warning of run.allow_unstable_dt was printed twice)
+            warnings.simplefilter("ignore")
             scene = scenario.build_scene(scenario.apply_overrides(case.base, list(case.overrides)), case.source)
-        scene.trace = case.trace
-        result = simulation.Simulation(scene).run()
+            scene.trace = case.trace
+            sim = simulation.Simulation(scene)
+        result = sim.run()
         summary = analysis.summary(result)
         row.update({k: _plain(summary.get(k)) for k in ROW_COLUMNS + COLLISION_COLUMNS if k != "case"})
         incomplete = analysis.incomplete_contact(result)
