@@ -273,20 +273,28 @@ def command_laws(args) -> int:
         }
         print(json.dumps(payload, indent=2))
         return EXIT_OK
+    shown = [q for e in registry.entries() for q in e.law.parameters] + [
+        q for kind in laws.KINDS for part in registry.parts(kind) for q in part.parameters]
+    # one set of column widths for every table, from the longest name and bounds shown
+    widths = (max((len(q.name) for q in shown), default=0), max((len(q.bounds_text()) for q in shown), default=0))
+
+    def parameter_line(q, indent: str) -> str:
+        default = "required" if q.required else ("derived" if q.default is None else f"{q.default:g}")
+        return f"{indent}- {q.name:<{widths[0]}} {default:>9} {q.unit:<5} {q.bounds_text():<{widths[1]}} {q.description}"
+
     print("Laws (law = NAME):")
     for e in registry.entries():
         aliases = f" (aliases: {', '.join(e.law.aliases)})" if e.law.aliases else ""
         print(f"{e.law.name}{aliases}  [{e.distribution} {e.version}, plugin '{e.plugin}']")
         print(f"    {e.law.description}")
-        for p in e.law.parameters:
-            default = "required" if p.required else ("derived" if p.default is None else f"{p.default:g}")
-            print(f"    - {p.name:<22} {default:>9} {p.unit:<5} {p.bounds_text():<14} {p.description}")
+        for q in e.law.parameters:
+            print(parameter_line(q, "    "))
         print(f"    history: {e.law.history_size} slot(s) per contact")
     for preset in registry.presets():
         print(f"{preset.name}  [preset: {' + '.join(preset.parts.values())}]")
         print(f"    {preset.description}")
         for name, value in preset.parameters.items():
-            print(f"    - {name:<22} {value:>9g}")
+            print(f"    - {name:<{widths[0]}} {value:>9g}")
     print("\nParts (combine one of each kind: [contact] normal = ..., damping = ..., tangential = ...):")
     for kind in laws.KINDS:
         print(f"{kind}:")
@@ -296,9 +304,8 @@ def command_laws(args) -> int:
             gives = f"; provides {', '.join(part.provides)}" if part.provides else ""
             print(f"  {part.name}  [{dist} {version}, plugin '{plugin}'; energy: {', '.join(part.energy)}{gives}{needs}]")
             print(f"      {part.description}")
-            for p in part.parameters:
-                default = "required" if p.required else ("derived" if p.default is None else f"{p.default:g}")
-                print(f"      - {p.name:<20} {default:>9} {p.unit:<5} {p.bounds_text():<14} {p.description}")
+            for q in part.parameters:
+                print(parameter_line(q, "      "))
     for b in registry.broken:
         print(f"BROKEN plugin '{b.plugin}'" + (f" law '{b.law}'" if b.law else "") + f": {b.reason}")
     return EXIT_OK
