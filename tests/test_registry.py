@@ -15,6 +15,7 @@ from __future__ import annotations
 import importlib
 import json
 import re
+import subprocess
 import sys
 import textwrap
 import tomllib
@@ -235,6 +236,16 @@ def test_builtin_laws_come_through_minidem_entry_point():
         assert (entry.plugin, entry.distribution, entry.version) == ("builtin", "minidem", minidem.__version__)
     assert not [b for b in registry.broken if b.plugin.startswith("builtin")]
 
+
+def test_the_engine_imports_no_law_by_name():
+    # The built-in laws reach the engine only through the registry, as a third party's do:
+    # importing the engine, its kernel template and the scene loader loads none of them
+    # (the kernel template once imported the linear spring as its placeholder force)
+    code = ("import sys; import minidem.engine.simulation, minidem.engine.kernel, minidem.scene.scenario, "
+            "minidem.geometry.neighbours; print([m for m in sys.modules if 'builtin_laws' in m])")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
 
 def test_aliases_resolve_to_the_law():
     registry = laws.load_registry()

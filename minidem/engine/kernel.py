@@ -96,7 +96,13 @@ from minidem.engine.integrate import block_sum, drift, kick, kick_spin, particle
 from minidem.engine.blocks import cycle_counter, defer_finishing  # noqa: F401
 
 # >>> specialisation block (rewritten by minidem.engine.simulation.compile_kernel)
-from minidem.contact.builtin_laws.linear import linear_force as law_force  # noqa: E402
+# In the template itself, never compiled (the engine reads only its constants), a
+# placeholder force with a law's signature: the engine imports no law by name.
+def law_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+              normal_velocity, tangential_increment, tangential_velocity, history):
+    return 0.0, 0.0, 0.0, 0.0
+
+
 law_force_alone = law_force
 
 SPIN = True
