@@ -264,7 +264,7 @@ def _couple_lines(call: dict, lines: list, imports: list, load: str = "normal_fo
 def _load_force(names: list[str], functions: list, imports: list, lines: list, couples: bool):
     """Write (once) and import the generated force module of a combination: {"force": the
     force numba inlines, "force_alone": the same compiled on its own}."""
-    from minidem.engine.simulation import _force_dependencies, cache_directory
+    from minidem.codecache import cache_directory, force_dependencies
 
     combination = "+".join(names)
     arguments = laws.FORCE_ARGUMENTS + (laws.COUPLE_ARGUMENTS if couples else ())
@@ -280,7 +280,7 @@ def _load_force(names: list[str], functions: list, imports: list, lines: list, c
     # the module's name follows its source and the code of every function the parts call
     digest = hashlib.sha256(source.encode())
     for function in functions:
-        digest.update(_force_dependencies(function)[0].encode())
+        digest.update(force_dependencies(function)[0].encode())
     digest.update(_GENERATOR_VERSION.encode())
     module_name = f"minidem_combination_{'_'.join(names)}_{digest.hexdigest()[:16]}"
     if module_name not in sys.modules:

@@ -22,13 +22,12 @@ import inspect
 import signal
 import sys
 import time as wallclock
-import types
 from pathlib import Path
 
 import numba
 import numpy as np
 
-from minidem import __version__
+from minidem import __version__, codecache
 from minidem.contact import history as contact_history, laws
 from minidem.engine import blocks, compile_speed, integrate, kernel, warmup
 from minidem.errors import MinidemError
@@ -173,85 +172,9 @@ class RunFailure(MinidemError):
     """The run started but could not finish: the CLI exits with code 1."""
 
 
-def cache_directory() -> Path:
-    """Where specialised kernels and numba's cache of them live (MINIDEM_CACHE_DIR)."""
-    path = warmup.kernel_cache_path()
-    path.mkdir(parents=True, exist_ok=True)
-    return path
-
-
-# Modules whose code a law may call but which cannot change under a minidem install
-# without numba's or minidem's version changing (both are in the kernel key).
-_STABLE_PACKAGES = {"numpy", "numba", "math", "cmath", "builtins", "llvmlite"}
-
-
-@functools.lru_cache(maxsize=None)
-def _force_dependencies(force) -> tuple[str, tuple]:
-    """Hash of the source of the law's force function and of everything it calls, followed
-    transitively through jitted and plain functions, closures and modules of any package
-    (a helper in a subpackage, minidem.contact.builtin_laws.common, another distribution), with
-    the module-level constants they read (numba freezes those into the machine code);
-    and the numba dispatchers met on the way. Read once per process per law, like the
-    engine's sources (_engine_hash).
-
-    Why: numba's own cache only notices a change in the file that defines a function, not
-    in a function it calls, so an edited helper would otherwise leave a stale kernel."""
-    digest = hashlib.sha256()
-    seen: set = set()
-    dispatchers: list = []
-
-    def names_of(code) -> set:
-        names = set(code.co_names) | set(code.co_freevars)
-        for const in code.co_consts:
-            if hasattr(const, "co_names"):
-                names |= names_of(const)
-        return names
-
-    def visit_function(func) -> None:
-        code = func.__code__
-        if code in seen:
-            return
-        seen.add(code)
-        try:
-            text = inspect.getsource(func)
-        except (OSError, TypeError):  # no source file (built at run time): its byte code
-            text = code.co_code.hex() + repr(code.co_consts)
-        digest.update(f"{func.__module__}.{func.__qualname__}\n{text}\n".encode())
-        names = names_of(code)
-        scope = dict(func.__globals__)
-        for cell_name, cell in zip(code.co_freevars, func.__closure__ or ()):
-            try:
-                scope[cell_name] = cell.cell_contents
-            except ValueError:  # an empty cell
-                pass
-        for name in sorted(names):
-            if name in scope:
-                visit_value(f"{func.__module__}.{name}", scope[name], names)
-
-    def visit_value(label: str, value, names: set) -> None:
-        if isinstance(value, numba.core.registry.CPUDispatcher):
-            if value not in dispatchers:
-                dispatchers.append(value)
-            visit_function(value.py_func)
-        elif isinstance(value, types.FunctionType):
-            visit_function(value)
-        elif isinstance(value, types.ModuleType):
-            if value.__name__.split(".")[0] in _STABLE_PACKAGES or id(value) in seen:
-                return
-            seen.add(id(value))
-            for name in sorted(names):  # attribute loads share co_names with globals
-                if hasattr(value, name):
-                    visit_value(f"{value.__name__}.{name}", getattr(value, name), names)
-        elif isinstance(value, (bool, int, float, complex, str, bytes, tuple)):
-            digest.update(f"{label}={value!r}\n".encode())
-
-    visit_value(f"{force.py_func.__module__}.{force.py_func.__qualname__}", force, set())
-    return digest.hexdigest(), tuple(dispatchers)
-
-
 def _law_source_hash(law: laws.ContactLaw) -> str:
-    """Hash of the code the law's force function runs (see _force_dependencies)."""
-    return _force_dependencies(law.force)[0]
+    """Hash of the code the law's force function runs (see minidem.codecache.force_dependencies)."""
+    return codecache.force_dependencies(law.force)[0]
 
 
 _LOADED: dict[str, object] = {}
@@ -284,7 +207,7 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
     flags["REACH"] = law.reach is not None
     flags["OPENING_KICK"] = integrate.OPENING_KICK[integrator]
     force_module, force_name = laws.force_import_name(law)
-    law_hash, law_dispatchers = _force_dependencies(law.force)
+    law_hash, law_dispatchers = codecache.force_dependencies(law.force)
     key = hashlib.sha256(
         f"{_engine_hash()}|{law_hash}|{entry.distribution}|{entry.version}|{force_module}."
         f"{force_name}|{law.force_alone is not None}|{flags}|{law.vector_history_offsets}|{numba.__version__}|"
@@ -305,7 +228,7 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
              + "".join(f"{name} = {value}\n" for name, value in flags.items())
              # the law's vector history slots, as a compile-time constant the kernel unrolls
              + f"VECTOR_OFFSETS = {tuple(law.vector_history_offsets)!r}\n" + _BLOCK_END)
-    path = cache_directory() / f"{module_name}.py"
+    path = codecache.cache_directory() / f"{module_name}.py"
     if not path.exists():
         # A new kernel: the code the law calls is new to this cache. Its functions' own
         # numba caches may hold machine code built against an older helper (numba checks
@@ -1472,7 +1395,7 @@ class _RunLoop:
             # user waiting for it is told what it is
             def compiling():
                 return _notice_if_slow(sim.notify, f"compiling the kernel of law '{sim.law.name}' for this scene "
-                                       f"shape; it is cached in {cache_directory()} for later runs")
+                                       f"shape; it is cached in {codecache.cache_directory()} for later runs")
 
             if kernel_helper is not None:
                 # the wait for the helper compiling the kernel: announced already by the

@@ -60,7 +60,8 @@ import pickle
 import select
 import subprocess
 import sys
-from pathlib import Path
+
+from minidem import codecache  # no numba: prestart runs before numba is imported
 
 # numba and numpy are imported where they are used: `minidem run` imports this module
 # before them, to start a helper first (prestart)
@@ -255,13 +256,6 @@ def _spawn(job: str, arguments: tuple = (), stdin_bytes: bytes | None = None, la
 _PRESTARTED: subprocess.Popen | None = None
 
 
-def kernel_cache_path() -> Path:
-    """Where specialised kernels are written (MINIDEM_CACHE_DIR/kernels; the folder may not
-    exist yet): ``minidem.engine.simulation.cache_directory``."""
-    root = os.environ.get("MINIDEM_CACHE_DIR") or Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "minidem"
-    return Path(root) / "kernels"
-
-
 def prestart() -> None:
     """Start the helper of a first run now, before this process imports numba and the
     engine: ``minidem run`` calls this first thing. The helper imports them meanwhile
@@ -281,7 +275,7 @@ def prestart() -> None:
     if os.environ.get("NUMBA_DISABLE_JIT", "0").strip() not in ("", "0"):
         return
     try:
-        if any(kernel_cache_path().glob("minidem_kernel_*.py")):
+        if any(codecache.kernel_cache_path().glob("minidem_kernel_*.py")):
             return
         _PRESTARTED = _python("from minidem.engine import warmup; warmup.serve()", stdin=subprocess.PIPE,
                               stdout=subprocess.PIPE)
@@ -387,7 +381,8 @@ def kernel_beside_check(scene, notify=None):
         if helper.process is None:
             yield
         else:
-            from minidem.engine.simulation import _notice_if_slow, cache_directory
+            from minidem.codecache import cache_directory
+            from minidem.engine.simulation import _notice_if_slow
 
             def told(text):
                 helper.announced = True
