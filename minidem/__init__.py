@@ -7,8 +7,8 @@ Data flows one way, and the subpackages follow it:
     results/   RunResult -> rebound measures, summaries, VTK series
     studies/   built on the above: sweeps, verify, reference solution, benchmarks
 
-below them ``geometry/`` (contact geometry, neighbour search, wall shapes) and
-``files`` (atomic writes), beside them the contact-model plugin API (``contact``:
+below them ``geometry/`` (contact geometry, neighbour search, wall shapes), ``files``
+(atomic writes) and ``codecache`` (where generated kernels are kept), beside them the contact-model plugin API (``contact``:
 laws, parts, presets, the hook, the built-in laws); ``api`` (the Python API,
 docs/python-api.md) and ``cli`` on top. No module imports one of a later stage.
 """
