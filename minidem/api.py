@@ -16,6 +16,8 @@ from __future__ import annotations
 import copy
 import json
 import math
+import time
+import warnings
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -311,7 +313,8 @@ def run(scenario, overrides=None, out: str | Path | None = None, progress: bool 
     """
     from minidem.engine import checkpoint, simulation
     from minidem.results import analysis
-    from minidem.results.output import write_run_files
+    from minidem.files import OutputError
+    from minidem.results.output import set_aside_earlier_results, write_run_files
     from minidem.scene import scenario as scenario_module
 
     given = _scenario(scenario, overrides)
@@ -328,14 +331,22 @@ def run(scenario, overrides=None, out: str | Path | None = None, progress: bool 
 
         frames = SimulationFrames(sim, directory)
     bar = _ProgressBar(scene.n_particles, sim.dt) if progress else None
+    started = time.time()
     try:
-        result = sim.run(progress=bar, on_frame=frames, checkpoints=policy)
-    finally:
-        if frames is not None:
-            frames.close()
-        if bar is not None:
-            bar.close()
-    summary = write_run_files(directory, result) if directory is not None else analysis.summary(result)
+        try:
+            result = sim.run(progress=bar, on_frame=frames, checkpoints=policy)
+        finally:
+            if frames is not None:
+                frames.close()
+            if bar is not None:
+                bar.close()
+        summary = write_run_files(directory, result) if directory is not None else analysis.summary(result)
+    except (simulation.RunFailure, OutputError):
+        # an earlier run's results in the directory must not read as this one's (as minidem run)
+        told = set_aside_earlier_results(directory, started) if directory is not None else None
+        if told:
+            warnings.warn(told, stacklevel=2)
+        raise
     return Result(result, summary, directory)
 
 

@@ -70,19 +70,16 @@ def print_summary(summary: dict, out=None) -> None:
 
 
 def command_run(args) -> int:
+    from minidem.engine import checkpoint, simulation, warmup
+    from minidem.files import OutputError
     from minidem.results.output import write_run_files
     from minidem.scene import scenario
-    from minidem.engine import simulation
     from minidem.studies import sweep
 
-    from minidem.engine import checkpoint
-
-    from minidem.engine import warmup
-
     data = scenario.read_toml(args.file)
-    # --set sweep.KEY=... makes a sweep of a file without [sweep] (checked as one): a single
-    # run ignored it, and an unknown key with it
-    if sweep.has_sweep(data) or sweep.has_sweep(scenario.apply_overrides(data, args.set or [])):
+    # with --set sweep.KEY=..., a file without [sweep] makes a sweep too (checked as one): a
+    # single run ignored it, and an unknown key with it
+    if sweep.has_sweep(scenario.apply_overrides(data, args.set or [])):
         warmup.dismiss()  # a sweep's cases run in their own processes
         if args.resume and args.restart:
             raise scenario.ScenarioError(f"{args.file}: --resume and --restart contradict each other: a sweep "
@@ -125,8 +122,8 @@ def command_run(args) -> int:
     with _progress_bar(scene, args.quiet, sim.dt) as progress:
         try:
             result = sim.run(progress=progress, on_frame=frames, checkpoints=policy, resume_from=resume_from)
-        except simulation.RunFailure:
-            _set_aside_earlier_results(directory, started)
+        except (simulation.RunFailure, OutputError):
+            _say_set_aside(directory, started)
             raise
         except KeyboardInterrupt:
             if sim.interrupted_at is not None:
@@ -138,7 +135,11 @@ def command_run(args) -> int:
             signal.signal(signal.SIGTERM, previous_sigterm)
             if frames is not None:
                 frames.close()
-    summary = write_run_files(directory, result)
+    try:
+        summary = write_run_files(directory, result)
+    except OutputError:
+        _say_set_aside(directory, started)
+        raise
     if args.quiet:  # --quiet keeps the warnings (docs/cli.md), on standard error
         for warning in summary["warnings"]:
             print(f"minidem: warning: {warning}", file=sys.stderr)
@@ -147,6 +148,7 @@ def command_run(args) -> int:
         for warning in summary["warnings"]:
             print(f"  warning: {warning}")
         print(f"  wrote {directory / 'summary.json'}, {directory / checkpoint.FINAL_STATE}"
+              + (f", {directory / 'trace.csv'}" if result.trace is not None else "")
               + (f", {frames.pvd_path} ({frames.frames} frames)" if frames is not None else "")
             + (f", {frames.walls_path}" if frames is not None and frames.walls_path is not None else ""))
         # a resumed run timed only the steps after its checkpoint
@@ -158,25 +160,13 @@ def command_run(args) -> int:
     return EXIT_OK
 
 
-def _set_aside_earlier_results(directory: Path, started: float) -> None:
-    """A run that failed leaves no summary or final state of its own, so those of an
-    earlier run in the same directory would read as this run's (a script checking
-    summary.json saw the old success): they are renamed *.previous.*, kept, and said so."""
-    from minidem.engine import checkpoint
+def _say_set_aside(directory: Path, started: float) -> None:
+    """A failed run: an earlier run's results in its directory renamed (output.set_aside_earlier_results)."""
+    from minidem.results.output import set_aside_earlier_results
 
-    moved = []
-    for name in ("summary.json", checkpoint.FINAL_STATE):
-        path = directory / name
-        try:
-            if path.stat().st_mtime < started:
-                target = path.with_name(f"{path.stem}.previous{path.suffix}")
-                path.replace(target)
-                moved.append(f"{name} -> {target.name}")
-        except OSError:  # absent (the usual case), or not movable: left as it is
-            continue
-    if moved:
-        print(f"minidem: the earlier run's results in {directory} are not this run's: renamed {', '.join(moved)}",
-              file=sys.stderr)
+    told = set_aside_earlier_results(directory, started)
+    if told:
+        print(f"minidem: {told}", file=sys.stderr)
 
 
 def _particle_counts(text: str) -> tuple[int, ...]:
@@ -276,11 +266,13 @@ def command_laws(args) -> int:
     shown = [q for e in registry.entries() for q in e.law.parameters] + [
         q for kind in laws.KINDS for part in registry.parts(kind) for q in part.parameters]
     # one set of column widths for every table, from the longest name and bounds shown
-    widths = (max((len(q.name) for q in shown), default=0), max((len(q.bounds_text()) for q in shown), default=0))
+    widths = [max((len(text) for text in column), default=0) for column in
+              zip(*((q.name, q.unit, q.bounds_text()) for q in shown))] or [0, 0, 0]
 
     def parameter_line(q, indent: str) -> str:
         default = "required" if q.required else ("derived" if q.default is None else f"{q.default:g}")
-        return f"{indent}- {q.name:<{widths[0]}} {default:>9} {q.unit:<5} {q.bounds_text():<{widths[1]}} {q.description}"
+        return (f"{indent}- {q.name:<{widths[0]}} {default:>9} {q.unit:<{widths[1]}} {q.bounds_text():<{widths[2]}} "
+                f"{q.description}")
 
     print("Laws (law = NAME):")
     for e in registry.entries():

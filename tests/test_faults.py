@@ -20,7 +20,6 @@ import sys
 import textwrap
 import time
 import xml.etree.ElementTree as ET
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -289,7 +288,7 @@ def test_a_failed_run_does_not_leave_an_earlier_runs_results_looking_like_its_ow
     # writes no summary, so the earlier summary.json and final_state.npz would read as its
     # result (a script checking summary.json saw success; a new user's report, 2026-11-27).
     # They are kept, renamed *.previous.*, and the run says so; its own last_good.npz is there.
-    oblique = Path(__file__).resolve().parents[1] / "scenarios" / "oblique.toml"
+    oblique = OBLIQUE
     assert run_cli("run", oblique, "--out", tmp_path, "--quiet").returncode == 0
     earlier = (tmp_path / "summary.json").read_bytes()
     done = run_cli("run", oblique, "--out", tmp_path, "--quiet", "--set", "run.dt=2e-4", "--set",
@@ -299,6 +298,14 @@ def test_a_failed_run_does_not_leave_an_earlier_runs_results_looking_like_its_ow
     assert not (tmp_path / "summary.json").exists() and not (tmp_path / checkpoint.FINAL_STATE).exists()
     assert (tmp_path / "summary.previous.json").read_bytes() == earlier
     assert (tmp_path / checkpoint.LAST_GOOD).exists()
+    # the Python API does the same, and says so as a warning
+    import minidem
+
+    minidem.run(oblique, out=tmp_path)
+    with pytest.warns(UserWarning, match="renamed summary.json -> summary.previous.json"):
+        with pytest.raises(minidem.RunFailure):
+            minidem.run(oblique, {"run.dt": 2e-4, "run.allow_unstable_dt": True}, out=tmp_path)
+    assert not (tmp_path / "summary.json").exists() and (tmp_path / "summary.previous.json").exists()
 
 @pytest.fixture(scope="module")
 def settle_guard():

@@ -321,9 +321,17 @@ def test_a_full_disk_fails_naming_the_file_and_keeps_the_earlier_results(victim,
     code, err = main(capsys, "run", OBLIQUE, "--out", tmp_path, "--quiet",
                      *sets("output.trace=true", "impact.angle_deg=45"))
     assert code == 1
-    assert err.startswith(f"minidem: run failed: cannot write {tmp_path / victim}: No space left on device"), err
+    assert f"minidem: run failed: cannot write {tmp_path / victim}: No space left on device" in err, err
     assert temporaries(tmp_path) == []
-    assert (tmp_path / victim).read_bytes() == before[victim]  # the earlier result, whole
+    # the earlier result, whole: under its own name, or, for the summary and final state
+    # that would read as this failed run's, renamed *.previous.* (and said so)
+    kept = tmp_path / victim
+    if not kept.exists():
+        kept = kept.with_name(f"{kept.stem}.previous{kept.suffix}")
+        assert f"{victim} -> {kept.name}" in err, err
+    assert kept.read_bytes() == before[victim]
+    if (tmp_path / "summary.json").exists():  # a summary left under its name is this run's
+        assert (tmp_path / "summary.json").read_bytes() != before["summary.json"]
 
 
 def test_a_full_disk_during_a_checkpoint_fails_naming_it(capsys, tmp_path, monkeypatch):

@@ -449,7 +449,19 @@ def test_minidem_laws_lists_plugins_with_package_version_and_broken_ones(fake_si
     assert "hmd (aliases: hertz_mindlin_deresiewicz)  [minidem 0.1.0, plugin 'builtin']" in done.stdout
     assert "BROKEN plugin 'missing (minidem-fakeplugin)': ModuleNotFoundError" in done.stdout
     assert "BROKEN plugin 'bad_laws' law 'Bad-Name'" in done.stdout
+    # every parameter's description starts in one column, at each indent (long names,
+    # units such as 'N m s/rad' and integer-choice bounds pushed rows out of line)
     payload = json.loads(run_cli("laws", "--json", env=env).stdout)
+    descriptions = {p["description"] for law in payload["laws"] for p in law["parameters"]}
+    descriptions |= {p["description"] for part in payload["parts"] for p in part["parameters"]}
+    columns: dict[int, set] = {}
+    for line in done.stdout.splitlines():
+        stripped = line.lstrip()
+        if stripped.startswith("- "):
+            found = [d for d in descriptions if d and line.endswith(d)]
+            if found:
+                columns.setdefault(len(line) - len(stripped), set()).add(line.index(max(found, key=len)))
+    assert columns and all(len(starts) == 1 for starts in columns.values()), columns
     by_name = {law["name"]: law for law in payload["laws"]}
     assert by_name["fake_spring"]["package"] == "minidem-fakeplugin"
     assert by_name["fake_spring"]["parameters"][0] == {

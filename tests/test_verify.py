@@ -145,6 +145,11 @@ def test_a_frictionless_law_without_contact_time_is_checked_not_refused(tmp_path
         # it does gain a little: the bound is what lets it pass, not a gain of zero
         assert "1.00000" in energy.value
         assert checks["rigid-body sliding limit"].passed is None
+    # the same spring a million times stiffer lasts 4 steps of the Hertz-based dt: its
+    # impacts gain up to 7 %, inside the integration bound of so coarse a step, so the
+    # check must not judge it passed but say the contact was not resolved
+    [stiff] = verify.Battery("plain_spring", ["contact.normal_stiffness=1e14"]).energy()
+    assert stiff.passed is False and "under-resolved" in stiff.value, stiff.value
 
 
 def test_a_contact_far_shorter_than_the_automatic_time_step_assumed_is_reported(tmp_path, monkeypatch):

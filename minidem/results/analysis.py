@@ -159,13 +159,13 @@ def resolution_warning(result: RunResult, duration) -> str | None:
     if steps >= UNDER_RESOLVED_FRACTION * scene.steps_per_contact:
         return None
     law = result.law
-    cause = (f"law '{law.name}' declares no contact_time, so run.dt = \"auto\" assumed the Hertz duration "
-             "(eq 13): declare contact_time (docs/writing-a-contact-law.md) or give run.dt"
+    cause = (f"law '{law.name}' declares no contact_time, so the Hertz duration (eq 13) was assumed; a law of "
+             "your own: declare contact_time (docs/writing-a-contact-law.md); any law: give run.dt"
              if law.contact_time is None else
              f"the contact time law '{law.name}' declares is not the one measured: check it, or give run.dt")
-    return (f"the contact lasted {duration:.3g} s, {steps:.3g} steps of dt = {result.dt:.3g} s, against the "
-            f"{scene.steps_per_contact} steps per contact run.dt = \"auto\" aims at ({result.dt_reason}): the "
-            f"rebound is under-resolved; {cause}")
+    return (f"the contact lasted {duration:.3g} s, {steps:.3g} steps of dt = {result.dt:.3g} s, where run.dt = "
+            f"\"auto\" aims at {scene.steps_per_contact} steps of the contact time it assumed "
+            f"({result.dt * scene.steps_per_contact:.3g} s or more): the rebound is under-resolved; {cause}")
 
 
 SUMMARY_KEYS = ("law", "angle_deg", "speed", "en", "et", "x", "y1", "y2", "contact_duration_s", "max_overlap_m",

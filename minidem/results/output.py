@@ -177,3 +177,32 @@ class Output:
         held = [name for name in ("summary.json", "final_state.npz", "trace.csv", "sweep.csv", "particles.pvd",
                                   "walls.vtu") if self._file(name)]
         return f"<Output {self.directory}: {', '.join(held)}>"
+
+
+def set_aside_earlier_results(directory: str | Path, started: float) -> str | None:
+    """After a run into ``directory`` failed (a blow-up, a result it could not write): the
+    summary.json and final_state.npz an earlier run left there, older than ``started``
+    (time.time() at the run's start), would read as this run's result (a script checking
+    summary.json saw the old success), so they are renamed *.previous.* and kept. Returns
+    what to tell the user, or None when there was nothing to move."""
+    from minidem.engine.checkpoint import FINAL_STATE
+
+    moved, kept = [], []
+    for name in ("summary.json", FINAL_STATE):
+        path = Path(directory) / name
+        try:
+            if path.stat().st_mtime >= started:  # this run's own (its final state, then a failed summary)
+                continue
+        except OSError:  # absent: the usual case
+            continue
+        target = path.with_name(f"{path.stem}.previous{path.suffix}")
+        try:
+            path.replace(target)
+            moved.append(f"{name} -> {target.name}")
+        except OSError as exc:
+            kept.append(f"{name} (could not be renamed: {exc.strerror or exc})")
+    if not moved and not kept:
+        return None
+    text = f"the earlier run's results in {directory} are not this run's: "
+    return text + "; ".join(filter(None, (f"renamed {', '.join(moved)}" if moved else "",
+                                          f"left as they are: {', '.join(kept)}" if kept else "")))

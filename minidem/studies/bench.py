@@ -247,7 +247,7 @@ def model_only(rounds: int, steps_per_contact: int = DEFAULT_STEPS_PER_CONTACT, 
 _SWEEP_SCRIPT = """
 import json, sys, tempfile, time
 started = time.perf_counter()
-from minidem.studies import checkout, reference
+from minidem.studies import reference
 from minidem.scene import scenario
 from minidem.studies import sweep
 from minidem.studies.bench import SCENARIO

@@ -314,16 +314,19 @@ def run_case(case: Case) -> dict:
     started = wallclock.perf_counter()
     try:
         with warnings.catch_warnings():
-            # plan() has shown them once already: the scene's and its Simulation's (the
-            # stability warning of run.allow_unstable_dt was printed twice)
-            warnings.simplefilter("ignore")
+            # plan() has shown the scene's and its Simulation's own warnings once already (the
+            # stability warning of run.allow_unstable_dt was printed twice); minidem's are
+            # UserWarnings, numba's (from the kernel's compile, which plan() does not do) are not
+            warnings.simplefilter("ignore", UserWarning)
             scene = scenario.build_scene(scenario.apply_overrides(case.base, list(case.overrides)), case.source)
             scene.trace = case.trace
             sim = simulation.Simulation(scene)
         result = sim.run()
         summary = analysis.summary(result)
         row.update({k: _plain(summary.get(k)) for k in ROW_COLUMNS + COLLISION_COLUMNS if k != "case"})
-        incomplete = analysis.incomplete_contact(result)
+        # a rebound measured from a contact of a few steps is no result either
+        incomplete = (analysis.incomplete_contact(result)
+                      or analysis.resolution_warning(result, summary["contact_duration_s"]))
         if incomplete:
             row["status"], row["error"] = "failed", incomplete
         if case.trace and result.trace is not None:
