@@ -150,7 +150,7 @@ def command_run(args) -> int:
         print(f"  wrote {directory / 'summary.json'}, {directory / checkpoint.FINAL_STATE}"
               + (f", {directory / 'trace.csv'}" if result.trace is not None else "")
               + (f", {frames.pvd_path} ({frames.frames} frames)" if frames is not None else "")
-            + (f", {frames.walls_path}" if frames is not None and frames.walls_path is not None else ""))
+              + (f", {frames.walls_path}" if frames is not None and frames.walls_path is not None else ""))
         # a resumed run timed only the steps after its checkpoint
         steps_here = result.steps - (resume_from[1]["step"] if resume_from is not None else 0)
         rate = steps_here / result.wall_time if result.wall_time > 0 else float("inf")
@@ -265,7 +265,7 @@ def command_laws(args) -> int:
         return EXIT_OK
     shown = [q for e in registry.entries() for q in e.law.parameters] + [
         q for kind in laws.KINDS for part in registry.parts(kind) for q in part.parameters]
-    # one set of column widths for every table, from the longest name and bounds shown
+    # one set of column widths for every table, from the longest name, unit and bounds shown
     widths = [max((len(text) for text in column), default=0) for column in
               zip(*((q.name, q.unit, q.bounds_text()) for q in shown))] or [0, 0, 0]
 
