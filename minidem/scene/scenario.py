@@ -131,8 +131,9 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
         Key("jitter", "float", 0.0, "m", "lattice: uniform random x and y shift in [-jitter, jitter]",
             low=0.0),
         Key("seed", "int", 12345, "-", "random seed (jitter, random)", low=0),
-        Key("file", "str", None, "", "file (required): CSV (x,y,z,radius[,vx,vy,vz,wx,wy,wz]) or a VTK "
-            "point file with a radius array, relative to the scenario file"),
+        Key("file", "str", None, "", "file (required): CSV whose first line is a header naming its columns "
+            "(x,y,z,radius and optionally vx,vy,vz,wx,wy,wz, lower case, any order) or a VTK point file with "
+            "a radius array, relative to the scenario file"),
         Key("velocity", "vec3", (0.0, 0.0, 0.0), "m/s", "initial velocity (lattice, random)"),
     ), "Particle generators, one `[[fill]]` table each, added after [[particles]]."),
     "impact": ("table", (
@@ -148,7 +149,8 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
             "and angle_deg follow from the two", low=0.0),
         Key("gap", "float", 0.0, "m", "distance from the sphere to the wall at t = 0, travelled at the impact "
             "velocity before first touch (0: touching at t = 0)", low=0.0),
-        Key("wall", "int", 0, "-", "index of the wall hit (in the order of [[walls]])", low=0),
+        Key("wall", "int", 0, "-", "index of the plane hit, counting the planes of [[walls]] in order (a plane "
+            "adds 1, a box its 5 or 6 faces, a cylinder its bottom if it has one, a mesh none)", low=0),
         Key("spin", "float", 0.0, "rad/s", "initial spin about the axis n x t (n wall normal, t "
             "tangential direction of travel)"),
         Key("tangent", "vec3", None, "-", "tangential direction of travel; default: the first of x, y, z "
@@ -156,9 +158,12 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
     ), "One sphere placed touching a wall (zero overlap at t = 0, or `gap` away) with velocity Vi at angle_deg: "
        "the paper's oblique impact. Rebound measures (en, et, x, y1, y2) are reported for it."),
     "run": ("table", (
-        Key("dt", "float_or_auto", "auto", "s", "time step, or \"auto\": contact_time / steps_per_contact",
+        Key("dt", "float_or_auto", "auto", "s", "time step, or \"auto\": the smallest of contact_time / "
+            "steps_per_contact, 0.2 x the Rayleigh time and 0.2 x the integrator's stability limit "
+            "(docs/time-step.md; the run's summary names the one that set it)",
             low=0.0, low_open=True),
-        Key("steps_per_contact", "int", 4000, "-", "steps per normal-impact duration when dt = \"auto\"",
+        Key("steps_per_contact", "int", 4000, "-", "steps per normal-impact duration when dt = \"auto\" (at least: the "
+            "Rayleigh or stability limit named under dt may make the step smaller)",
             low=20),
         Key("integrator", "choice", "auto", "", "\"auto\": \"analytic_flight\" for one particle among plane "
             "walls (the free flight is then never stepped), else \"velocity_verlet\"; "
@@ -214,9 +219,10 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
             'keep_traces); Chung & Ooi\'s, against sweep.abscissa: "hertz" (max overlap, peak force, contact '
             'duration beside Hertz theory), "restitution" (en obtained against requested), "rebound" (rebound '
             'tangential velocity, spin, rebound angle and recoil ratio beside rigid-body impulse theory), '
-            '"force_time" (normal force against time from the traces of sphere-wall cases; needs keep_traces)'),
+            '"force_time" (normal force against time from the traces of sphere-wall cases; needs keep_traces). '
+            'A scenario without [impact] draws none by default (the default figures are an impact\'s)'),
         Key("series_labels", "list", None, "", "legend labels, one per combination of the swept keys other "
-            "than impact.angle_deg (default: the values)"),
+            "than sweep.abscissa and the keys varying together with it (default: the values)"),
         Key("title", "str", None, "", "figure title"),
         Key("together", "list", [], "", 'groups of swept keys that vary together instead of forming a product, '
             'e.g. [["particles.0.angular_velocity.2", "particles.1.angular_velocity.2"]] (both spheres spin '
@@ -227,7 +233,7 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
        "cluster with `--scheduler`) and writes OUT/sweep.csv (case, law, angle_deg, x, y1, y2, et, en, "
        "contact_duration_s, energy_ratio, max_overlap_m, steps, dt_s, peak_normal_force_n, the collision "
        "measures of docs/chung-ooi.md when a hertz, restitution or rebound figure is asked for, the swept keys, "
-       "status, error; the "
+       "trace_file (with keep_traces), status, error; the "
        "same file for any back end and worker count) and the figures. Finished cases are journalled in "
        "OUT/sweep.journal: running the same command again resumes an interrupted sweep. See "
        "docs/paper-reproduction.md and docs/sweeps-on-a-cluster.md."),

@@ -600,7 +600,7 @@ HMD = _law(
     ),
     "Thornton, Cummins & Cleary (2011) section 3.1; Thornton & Yin (1991)",
     aliases=("hertz_mindlin_deresiewicz",),
-    extra=(Parameter("reversal_check", 1.0, "-", "1: while sliding, reverse to unloading only when "
+    extra=(_Choice("reversal_check", 1.0, "-", "1: while sliding, reverse to unloading only when "
                      "the elastic trial force is inside the Coulomb cone; 0: reverse the instant "
                      "the displacement does (see docs/laws.md)", low=0.0, high=1.0),
            _Choice("special_case", 0.0, "-", "reading of eq 24, when the theta = 1 state entered "
