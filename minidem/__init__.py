@@ -23,7 +23,7 @@ _API = {
     "Scenario": "minidem.api", "Result": "minidem.api", "SweepTable": "minidem.api", "load": "minidem.api",
     "run": "minidem.api", "sweep": "minidem.api", "open_results": "minidem.api",
     "MinidemError": "minidem.errors", "ScenarioError": "minidem.scene.scenario", "LawError": "minidem.contact.laws",
-    "RunFailure": "minidem.engine.simulation", "OutputError": "minidem.files",
+    "RunFailure": "minidem.engine.run_loop", "OutputError": "minidem.files",
 }
 __all__ = ["hookimpl", "__version__", *_API]
 

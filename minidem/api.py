@@ -246,7 +246,7 @@ class Result:
     ``initial_angular_velocity``; ``time`` (s) at the end; ``trace``: the probed contact
     per step as columns (``output.trace = true``) or None; ``energy``: (time s, kinetic
     energy J) samples; ``scene``: the validated scene; ``raw``: the engine's
-    :class:`minidem.engine.simulation.RunResult`; ``directory``: where the files went
+    :class:`minidem.engine.run_loop.RunResult`; ``directory``: where the files went
     (``out=``), else None.
     """
 
@@ -311,7 +311,7 @@ def run(scenario, overrides=None, out: str | Path | None = None, progress: bool 
     Raises :class:`ScenarioError` (bad input), :class:`LawError` (a broken law),
     :class:`RunFailure` (a blow-up), all :class:`MinidemError`.
     """
-    from minidem.engine import checkpoint, simulation
+    from minidem.engine import checkpoint, run_loop, simulation
     from minidem.results import analysis
     from minidem.files import OutputError
     from minidem.results.output import set_aside_earlier_results, write_run_files
@@ -341,7 +341,7 @@ def run(scenario, overrides=None, out: str | Path | None = None, progress: bool 
             if bar is not None:
                 bar.close()
         summary = write_run_files(directory, result) if directory is not None else analysis.summary(result)
-    except (simulation.RunFailure, OutputError):
+    except (run_loop.RunFailure, OutputError):
         # an earlier run's results in the directory must not read as this one's (as minidem run)
         told = set_aside_earlier_results(directory, started) if directory is not None else None
         if told:

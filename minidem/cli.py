@@ -70,7 +70,7 @@ def print_summary(summary: dict, out=None) -> None:
 
 
 def command_run(args) -> int:
-    from minidem.engine import checkpoint, simulation, warmup
+    from minidem.engine import checkpoint, run_loop, simulation, warmup
     from minidem.files import OutputError
     from minidem.results.output import write_run_files
     from minidem.scene import scenario
@@ -122,7 +122,7 @@ def command_run(args) -> int:
     with _progress_bar(scene, args.quiet, sim.dt) as progress:
         try:
             result = sim.run(progress=progress, on_frame=frames, checkpoints=policy, resume_from=resume_from)
-        except (simulation.RunFailure, OutputError):
+        except (run_loop.RunFailure, OutputError):
             _say_set_aside(directory, started)
             raise
         except KeyboardInterrupt:
@@ -479,7 +479,7 @@ def main(argv=None) -> int:
     from minidem.contact.laws import LawError
     from minidem.files import OutputError
     from minidem.scene.scenario import ScenarioError
-    from minidem.engine.simulation import RunFailure
+    from minidem.engine.run_loop import RunFailure
 
     with warnings.catch_warnings():
         warnings.simplefilter("always")
@@ -500,7 +500,7 @@ def main(argv=None) -> int:
             print("minidem: interrupted", file=sys.stderr)
             return 130
         except Exception as exc:  # noqa: BLE001 - never a bare traceback without --debug
-            from minidem.engine.simulation import interrupted
+            from minidem.engine.run_loop import interrupted
 
             if interrupted(exc):  # a Ctrl-C that surfaced as another error (numba's SystemError)
                 print("minidem: interrupted", file=sys.stderr)

@@ -77,7 +77,7 @@ def without_progress(err: str) -> str:
 
 
 def contact_count(state):
-    """Contacts per particle (pairs and plane walls) in a :class:`minidem.engine.simulation.State`."""
+    """Contacts per particle (pairs and plane walls) in a :class:`minidem.engine.state.State`."""
     offsets, partners, _, overlap = state.pairs[:4]
     first = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
     touching = overlap > 0

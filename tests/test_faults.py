@@ -28,7 +28,8 @@ from conftest import OBLIQUE, REPO, minidem_command, run_cli
 from minidem import cli
 from minidem.engine import blowup
 from minidem.scene import scenario
-from minidem.engine import simulation
+from minidem.engine import run_loop, simulation
+from minidem.engine.state import State
 from minidem.engine import checkpoint
 
 SETTLE = REPO / "scenarios" / "bench" / "settle.toml"
@@ -218,7 +219,7 @@ def test_a_ctrl_c_during_the_copy_of_the_last_good_state_waits_for_the_copy():
     Ctrl-C must not tear it, so SIGINT is held while it is copied and raised after."""
     events = []
     with pytest.raises(KeyboardInterrupt):
-        with simulation._interrupts_deferred():
+        with run_loop._interrupts_deferred():
             signal.raise_signal(signal.SIGINT)
             time.sleep(0.01)  # Python would run its handler here if the signal were not held
             events.append("copy finished")
@@ -235,7 +236,7 @@ def test_a_ctrl_c_during_a_copy_checkpoints_a_whole_state(tmp_path, monkeypatch)
         return scenario.load_scene(REPO / "scenarios" / "newtons_cradle.toml", ["run.end_time=2e-4"], "-")
 
     reference = simulation.Simulation(load()).run()
-    original, copies = simulation.State.capture, []
+    original, copies = State.capture, []
 
     def capture(self, into=None):
         out = original(self, into)
@@ -244,10 +245,10 @@ def test_a_ctrl_c_during_a_copy_checkpoints_a_whole_state(tmp_path, monkeypatch)
             signal.raise_signal(signal.SIGINT)
         return out
 
-    monkeypatch.setattr(simulation.State, "capture", capture)
+    monkeypatch.setattr(State, "capture", capture)
     with pytest.raises(KeyboardInterrupt):
         simulation.Simulation(load()).run(checkpoints=checkpoint.Policy(tmp_path, interval=2e-5), chunk_steps=100)
-    monkeypatch.setattr(simulation.State, "capture", original)
+    monkeypatch.setattr(State, "capture", original)
     arrays, meta = checkpoint.read(tmp_path / checkpoint.CHECKPOINT)
     assert np.array_equal(arrays["position"], copies[2])  # the newest copy, with its own step count:
     sim = simulation.Simulation(load())
@@ -316,7 +317,7 @@ def settle_guard():
 
 def test_guard_passes_free_fall_and_catches_nan_runaway_energy_and_escape(settle_guard):
     sim, guard = settle_guard
-    state = simulation.State(sim)
+    state = State(sim)
     assert guard.check(state, 0.0, 0.0)[0] is None
     # every particle in free fall for 0.1 s: energy from gravity only, allowed
     t, g = 0.1, sim.scene.gravity
@@ -325,18 +326,18 @@ def test_guard_passes_free_fall_and_catches_nan_runaway_energy_and_escape(settle
     fault, work = guard.check(state, t, 0.0)
     assert fault is None and work == pytest.approx(float(sim.scene.mass.sum()) * 9.81 * 0.5 * 9.81 * t * t)
     # one particle 100 times faster than the whole energy budget allows (1e4 times the energy)
-    fast = simulation.State(sim)
+    fast = State(sim)
     budget = guard.budget(fast.position, 0.0)[0]
     fast.velocity[7] = [0.0, 100.0 * math.sqrt(2.0 * budget / sim.scene.mass[7]), 0.0]
     fault, _ = guard.check(fast, 1e-3, 0.0)
     assert (fault.what, fault.particle) == ("energy", 7)
     # a NaN spin
-    broken = simulation.State(sim)
+    broken = State(sim)
     broken.angular_velocity[12, 2] = math.nan
     fault, _ = guard.check(broken, 1e-3, 0.0)
     assert (fault.what, fault.particle) == ("non-finite state", 12) and "angular velocity" in fault.detail
     # a particle 1 km away after 1 ms, at rest: no energy could have carried it there
-    escaped = simulation.State(sim)
+    escaped = State(sim)
     escaped.position[42, 0] += 1e3
     fault, _ = guard.check(escaped, 1e-3, 0.0)
     assert (fault.what, fault.particle) == ("domain", 42) and "left the domain" in fault.detail

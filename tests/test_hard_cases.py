@@ -29,6 +29,7 @@ from minidem.results import analysis
 from minidem.studies import reference
 from minidem.scene import scenario
 from minidem.engine import simulation
+from minidem.engine.run_loop import RunFailure
 from minidem.scene.scenario import ScenarioError
 
 MU = PAPER["friction"]
@@ -507,7 +508,7 @@ def test_a_scene_that_gains_energy_is_not_silent(tmp_path):
     path = tmp_path / "gain.toml"
     path.write_text(ENERGY_GAIN_SCENE)
     with pytest.warns(UserWarning, match="times the stability limit"):  # allowed, with a warning
-        with pytest.raises(simulation.RunFailure, match=r"blow-up \(energy\) .* times the scene's energy budget"):
+        with pytest.raises(RunFailure, match=r"blow-up \(energy\) .* times the scene's energy budget"):
             simulation.Simulation(scenario.load_scene(path, [], "-")).run()
     scene = scenario.load_scene(path, [], "-")
     gained = types.SimpleNamespace(scene=scene, energy=np.array([[0.0, 1e-3], [0.01, 1.5e-3], [0.02, 1.2e-3]]),

@@ -13,6 +13,8 @@ import pytest
 import minidem
 from minidem.contact import laws
 from minidem.engine import checkpoint, kernel, simulation, warmup
+from minidem.engine.run_loop import LoopThreads
+from minidem.engine.state import State
 from minidem.geometry.order import SCATTERED_RATIO, exchange_pairs, mean_step, permute_rows, scattered, spatial_order
 from minidem.studies import verify
 
@@ -122,7 +124,7 @@ def interrupted_then_resumed(tmp_path, monkeypatch, scene, copies: int, interval
     good state, with checkpoints every ``interval`` s; then --resume. Returns (the run left
     alone, the resumed run, the checkpoint's arrays, the state's sorts at the last copy)."""
     reference = simulation.Simulation(scene()).run()
-    original, sorts = simulation.State.capture, []
+    original, sorts = State.capture, []
 
     def capture(self, into=None):
         out = original(self, into)
@@ -131,11 +133,11 @@ def interrupted_then_resumed(tmp_path, monkeypatch, scene, copies: int, interval
             signal.raise_signal(signal.SIGINT)
         return out
 
-    monkeypatch.setattr(simulation.State, "capture", capture)
+    monkeypatch.setattr(State, "capture", capture)
     with pytest.raises(KeyboardInterrupt):
         simulation.Simulation(scene()).run(checkpoints=checkpoint.Policy(tmp_path, interval=interval),
                                            chunk_steps=chunk_steps)
-    monkeypatch.setattr(simulation.State, "capture", original)
+    monkeypatch.setattr(State, "capture", original)
     arrays, meta = checkpoint.read(tmp_path / checkpoint.CHECKPOINT)
     assert 0 < meta["step"] < reference.steps
     sim = simulation.Simulation(scene())
@@ -306,7 +308,7 @@ def test_a_run_sorted_at_every_build_gives_the_same_bits_on_one_and_two_threads(
         pytest.skip("needs two threads")
     reversing_every_build(monkeypatch)
     monkeypatch.setattr(simulation, "PARALLEL_MIN_PARTICLES", 0)
-    monkeypatch.setattr(simulation.LoopThreads, "PROBE_FIRST", 10**9)
+    monkeypatch.setattr(LoopThreads, "PROBE_FIRST", 10**9)
     overrides = ["walls.0.upper=[0.02, 0.02, 1.0]", "fill.0.upper=[0.02, 0.02, 1.0]", "fill.0.count=200",
                  "run.end_time=0.012", "output.vtk=false"]
     runs, sims = [], []
@@ -371,13 +373,13 @@ def test_a_ctrl_c_checkpoint_from_a_copy_older_than_a_sort_resumes_bit_for_bit(t
     reversing_every_build(monkeypatch)
     reference = simulation.Simulation(polydisperse_pile()).run()
     sorts_at_copy = []
-    original = simulation.State.capture
+    original = State.capture
 
     def capture(self, into=None):
         sorts_at_copy.append(self.sorts)
         return original(self, into)
 
-    monkeypatch.setattr(simulation.State, "capture", capture)
+    monkeypatch.setattr(State, "capture", capture)
     sim = simulation.Simulation(polydisperse_pile())
 
     def progress(steps, total, contacts):
@@ -386,7 +388,7 @@ def test_a_ctrl_c_checkpoint_from_a_copy_older_than_a_sort_resumes_bit_for_bit(t
 
     with pytest.raises(KeyboardInterrupt):
         sim.run(progress=progress, checkpoints=checkpoint.Policy(tmp_path, interval=1.0), chunk_steps=50)
-    monkeypatch.setattr(simulation.State, "capture", original)
+    monkeypatch.setattr(State, "capture", original)
     resumed_sim = simulation.Simulation(polydisperse_pile())
     resumed = resumed_sim.run(resume_from=checkpoint.load_for_resume(resumed_sim, tmp_path))
     for name in ("position", "velocity", "angular_velocity"):

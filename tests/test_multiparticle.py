@@ -15,6 +15,8 @@ from conftest import contact_count
 from minidem.results import analysis
 from minidem.scene import scenario
 from minidem.engine import blocks, integrate, simulation
+from minidem.engine.run_loop import LoopThreads
+from minidem.engine.state import _full_array, full_arrays
 
 GLASS = {"youngs_modulus": 70e9, "poisson_ratio": 0.3, "density": 2650.0}
 RADIUS, SPEED = 0.025, 5.0
@@ -431,11 +433,11 @@ def test_last_good_copy_keeps_the_touching_contacts_rows_and_gives_every_bit_bac
         assert name not in copy_ and 0 < len(rows) <= touching[name].sum()
         assert touching[name][rows].all(), f"{name}: a row kept for a contact that does not touch"
         assert copy_[name + "@values"].nbytes < array.nbytes
-    saved = {name: array.copy() for name, array in simulation.full_arrays(copy_).items() if name != "builds"}
+    saved = {name: array.copy() for name, array in full_arrays(copy_).items() if name != "builds"}
     state.pairs[2][...] = -0.0
     state.planes[3][...] = np.nan
     state.restore(copy_)
-    restored = {name: simulation._full_array(state.capture(), name) for name in saved}
+    restored = {name: _full_array(state.capture(), name) for name in saved}
     for name, array in saved.items():
         assert np.array_equal(array.view(np.uint8), restored[name].view(np.uint8)), name
 
@@ -457,7 +459,7 @@ def test_same_bits_on_one_and_two_threads(monkeypatch):
     # lowered, so that 200 particles run the two-thread loops (blocks, separate finish
     # pass), and no chunk tries one thread instead (LoopThreads)
     monkeypatch.setattr(simulation, "PARALLEL_MIN_PARTICLES", 0)
-    monkeypatch.setattr(simulation.LoopThreads, "PROBE_FIRST", 10**9)
+    monkeypatch.setattr(LoopThreads, "PROBE_FIRST", 10**9)
     measured = []
     plain_measure = blocks.BlockTiming.measure
     monkeypatch.setattr(blocks.BlockTiming, "measure",
@@ -486,7 +488,7 @@ def test_a_threaded_run_keeps_its_freed_pages_between_list_builds_whatever_its_c
     trims = []
     monkeypatch.setattr(simulation, "release_free_memory", lambda: trims.append(1))
     monkeypatch.setattr(simulation, "PARALLEL_MIN_PARTICLES", 0)  # the scene and kernel of the test above
-    monkeypatch.setattr(simulation.LoopThreads, "PROBE_FIRST", 1)
+    monkeypatch.setattr(LoopThreads, "PROBE_FIRST", 1)
     base = DEEP_PILE[1:] + ["fill.0.count=200", "run.end_time=0.012", "output.vtk=false"]
     results = {}
     for threads in (1, 2):
@@ -610,7 +612,7 @@ def test_a_pair_whose_root_rounds_to_touch_is_apart(monkeypatch):
                    "material": "beads"} for k in range(20)]
     particles += [{"position": [x, y, 0.0], "velocity": [-1e-5, 1.0, 0.0], "radius": radius, "material": "beads"}]
     monkeypatch.setattr(simulation, "PARALLEL_MIN_PARTICLES", 0)
-    monkeypatch.setattr(simulation.LoopThreads, "PROBE_FIRST", 10**9)
+    monkeypatch.setattr(LoopThreads, "PROBE_FIRST", 10**9)
     runs = []
     for threads in (1, 2):
         scene = scenario.build_scene({
@@ -686,26 +688,26 @@ def test_loop_threads_keep_the_faster_count():
     # two threads allowed; one thread is measured faster (a loaded machine): the run
     # switches to it at the first probe, and probes two threads again later, ever more
     # rarely while they keep losing; when two win again it goes back to two
-    chooser = simulation.LoopThreads(2)
+    chooser = LoopThreads(2)
     speed = {1: 1.0, 2: 3.0}  # seconds per 100 steps
     used = []
     for _ in range(200):
         threads = chooser.choose()
         used.append(threads)
         chooser.record(threads, 100, speed[threads])
-    assert used[:simulation.LoopThreads.PROBE_FIRST + 1] == [2] * simulation.LoopThreads.PROBE_FIRST + [1]
+    assert used[:LoopThreads.PROBE_FIRST + 1] == [2] * LoopThreads.PROBE_FIRST + [1]
     probes = [k for k in range(10, 200) if used[k] == 2]
     assert 2 <= len(probes) <= 6 and probes[-1] - probes[-2] >= 32  # backing off
     assert chooser.most_used() == 1 and chooser.steps == {1: 100 * used.count(1), 2: 100 * used.count(2)}
     speed = {1: 1.0, 2: 0.6}
-    for _ in range(2 * simulation.LoopThreads.PROBE_MAX + 2):
+    for _ in range(2 * LoopThreads.PROBE_MAX + 2):
         threads = chooser.choose()
         chooser.record(threads, 100, speed[threads])
     assert chooser.current == 2
     # chunks cut short by a rebuild count their steps but decide nothing
-    chooser.record(1, simulation.LoopThreads.MIN_STEPS - 1, 1e-9)
+    chooser.record(1, LoopThreads.MIN_STEPS - 1, 1e-9)
     assert chooser.current == 2
-    assert simulation.LoopThreads(1).choose() == 1
+    assert LoopThreads(1).choose() == 1
 
 
 def test_vtk_series_reads_back_with_meshio_and_vtk(tmp_path):

@@ -28,6 +28,7 @@ from minidem.contact import laws
 from minidem.results import analysis
 from minidem.scene import scenario
 from minidem.engine import simulation
+from minidem.engine.run_loop import RunFailure
 
 FAKE_COMMON = '''
 import math
@@ -434,7 +435,7 @@ def test_a_failing_prepare_names_law_materials_and_cause(fake_site, monkeypatch)
 def test_a_nan_force_stops_the_run_at_that_step_naming_the_contact(fake_site, monkeypatch):
     registry = load("fake_good")
     sim = simulation.Simulation(_fake_scene("fake_nan", registry, monkeypatch), registry=registry)
-    with pytest.raises(simulation.RunFailure) as info:
+    with pytest.raises(RunFailure) as info:
         sim.run()
     message = str(info.value)
     assert "law 'fake_nan'" in message and "non-finite force" in message

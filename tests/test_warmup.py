@@ -12,11 +12,12 @@ import sys
 _ENGINE_CALLS = """
 import json
 from minidem.engine import blowup, integrate, simulation
+from minidem.engine.state import State
 from minidem.geometry import neighbours
 from minidem.scene import scenario
 scene = scenario.load_scene("scenarios/bench/settle.toml", ["fill.0.count=20", "output.vtk=false"])
 sim = simulation.Simulation(scene, compile=False)
-state = simulation.State(sim)
+state = State(sim)
 sim.rebuild(state)
 blowup.Guard(sim).check(state, 0.0, 0.0)
 state.kinetic_energy(scene.inertia)

@@ -102,12 +102,12 @@ def compile_shared(pairs: bool, meshes: bool) -> None:
     (C-contiguous float64 and int64 arrays, a float skin, an int count)."""
     import numpy as np
 
-    from minidem.engine.simulation import pair_index_type
+    from minidem.engine.state import pair_index_type
     from minidem.geometry import neighbours
 
     n, h = 2, 3
     position = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
-    vector, scalar = np.zeros((n, 3)), np.ones(n)
+    scalar = np.ones(n)
     history, overlap = np.zeros((0, h)), np.zeros(0)
     index = np.zeros(0, dtype=np.int64)
     if pairs:
@@ -382,13 +382,13 @@ def kernel_beside_check(scene, notify=None):
             yield
         else:
             from minidem.codecache import cache_directory
-            from minidem.engine.simulation import _notice_if_slow
+            from minidem.engine.run_loop import notice_if_slow
 
             def told(text):
                 helper.announced = True
                 notify(text)
 
-            with _notice_if_slow(None if notify is None else told,
+            with notice_if_slow(None if notify is None else told,
                                  "compiling the neighbour search for the check of overlapping spheres, "
                                  "and beside it the scene's kernel; both are cached in "
                                  f"{cache_directory()} for later runs"):
@@ -414,7 +414,7 @@ def _compile_called_force(law_name: str, combination_only: bool = False) -> None
     kernel compiles, and reports, itself."""
     try:
         from minidem.contact import laws
-        from minidem.engine.simulation import force_signature
+        from minidem.engine.law_signature import force_signature
 
         law = laws.registry().entry(law_name).law
         called = laws.called_force(law)
@@ -445,11 +445,11 @@ def compile_kernel_of_scene() -> None:
     """The helper's side of :func:`kernel_beside_check`: the scene from standard input,
     its Simulation as ``minidem run`` builds it, and the kernel's ``advance`` compiled for
     the types of the arguments the run passes (into the caches the run loads it from)."""
-    from minidem.engine import simulation
+    from minidem.engine import run_loop, simulation
 
     scene = pickle.load(sys.stdin.buffer)
     sim = simulation.Simulation(scene)
-    loop = simulation._RunLoop(sim, 1, None, None, sim.loop_threads(), None, None)
+    loop = run_loop.RunLoop(sim, 1, None, None, sim.loop_threads(), None, None)
     loop.compile_kernel()
     # then the guard's functions, unless the run has compiled them meanwhile (a call loads
     # them from the cache then), in the other order than the run's: whichever process is

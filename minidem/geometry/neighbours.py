@@ -415,7 +415,7 @@ def reverse_index(offsets, neighbours, n_particles):
 
     The arrays are numpy's, filled by compiled code (``fill_reverse_index``): numpy asks
     for transparent huge pages for arrays of 4 MiB and more, which the force pass reads
-    every step (``minidem.engine.simulation.numpy_owned``), and no copy of them is made at
+    every step (``minidem.engine.state.numpy_owned``), and no copy of them is made at
     a list rebuild, the peak of a large run's memory.
     """
     reverse_offsets = np.zeros(n_particles + 1, dtype=np.int64)

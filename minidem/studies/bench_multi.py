@@ -45,11 +45,11 @@ JITTER = {"lattice": 0.0, "jitter": 9e-5}  # m, as in settle.md and make_lattice
 _CHILD = """
 import json, resource, sys, time
 from minidem.scene import scenario
-from minidem.engine import simulation
+from minidem.engine import run_loop, simulation
 n, jitter, threads, steps, vtk, out = sys.argv[1:7]
 if threads.endswith("pinned"):  # every chunk on that many threads: no probes of one (LoopThreads)
     threads = threads.removesuffix("pinned")
-    simulation.LoopThreads.PROBE_FIRST = 10**9
+    run_loop.LoopThreads.PROBE_FIRST = 10**9
 overrides = [f"fill.0.count={n}", f"fill.0.jitter={jitter}", f"run.threads={threads}",
              f"run.end_time={int(steps) * 2e-5!r}", f"output.vtk={vtk}"]
 if sys.argv[8] != "-":  # a column taller than the scene file's 1 m box (above 919,000 spheres)

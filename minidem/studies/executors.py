@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from minidem.scene.scenario import ScenarioError
-from minidem.engine.simulation import RunFailure
+from minidem.engine.run_loop import RunFailure
 
 DASK_ADDRESS_VARIABLE = "DASK_SCHEDULER_ADDRESS"  # Dask's own convention (dask.config "scheduler-address")
 DASK_MISSING = "the Dask back end needs the dask extra: pip install 'minidem[dask]'"

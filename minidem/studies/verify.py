@@ -20,7 +20,7 @@ from minidem.contact import laws
 from minidem.errors import MinidemError
 from minidem.results import analysis
 from minidem.scene import scenario
-from minidem.engine import simulation
+from minidem.engine import law_signature, run_loop, simulation
 
 PAPER_SCENE = {
     "materials": {"paper": {"youngs_modulus": 70e9, "poisson_ratio": 0.3, "density": 2650.0}},
@@ -71,7 +71,7 @@ class Battery:
             return named
         return laws.registry().entry(scene.law_name)
 
-    def run(self, *extra: str, law: str | None = None, trace: bool = False) -> tuple[dict, simulation.RunResult]:
+    def run(self, *extra: str, law: str | None = None, trace: bool = False) -> tuple[dict, run_loop.RunResult]:
         data = scenario.apply_overrides(self.base, list(extra))
         if law is not None:
             data["contact"] = {"law": law, "friction": self.friction}
@@ -217,7 +217,7 @@ class Battery:
                 (self.law.force if self.law.force_alone is None else self.law.force_alone)(*arguments)
             except numba.core.errors.NumbaError as exc:  # the force does not compile: say where, exit 2
                 raise laws.LawError(f"law '{self.law.name}' from plugin '{self.entry.plugin}' "
-                                    f"({self.entry.distribution}): {simulation.force_problem(self.law, exc)}") from exc
+                                    f"({self.entry.distribution}): {law_signature.force_problem(self.law, exc)}") from exc
             previous = overlap
             written = np.flatnonzero(buffer[size:] != 1.2345678e-300)
             if written.size:
@@ -410,7 +410,7 @@ class Battery:
         data = self.pair_data(rotation, shift, end_time)
         return simulation.Simulation(self.pair_scene(data)).run()
 
-    def run_turning(self, end_time: float, turn: bool) -> tuple[simulation.RunResult, int]:
+    def run_turning(self, end_time: float, turn: bool) -> tuple[run_loop.RunResult, int]:
         """The pair collision with a list rebuild about every 20 steps (a 2 um skin), the two
         spheres' order reversed at every rebuild when ``turn``: (the run, how many times it
         was sorted). Sorting and the exchange of a pair's history are the same code for two

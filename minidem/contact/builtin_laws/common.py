@@ -150,7 +150,7 @@ def _hertz_dashpot_restitution(alpha):
     h = 2.0e-4
     force_old = 0.0
     for _ in range(50_000_000):
-        x0, v0 = x, v
+        v0 = v
         k1x, k1v = v, -max(_tsuji_force(x, v, alpha), 0.0)
         x1, v1 = x + 0.5 * h * k1x, v + 0.5 * h * k1v
         k2x, k2v = v1, -max(_tsuji_force(x1, v1, alpha), 0.0)

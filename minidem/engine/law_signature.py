@@ -1,0 +1,92 @@
+"""The argument types the kernel passes a law's force function and each kind of part
+(what the helper compiles a law for ahead of the kernel: :mod:`minidem.engine.warmup`),
+and, when a law breaks the kernel's compilation, why, in terms of the law's own code.
+"""
+
+from __future__ import annotations
+
+import inspect
+import os
+
+import numba
+
+from minidem.contact import history as contact_history, laws
+
+def _numba_cause(exc: Exception) -> str:
+    """The informative lines of a numba error (it buries the cause among 'During:' lines):
+    the message, and where in the law's own code (never the generated kernel's lines)."""
+    lines = [line.strip() for line in str(exc).splitlines()]
+    message = [line for line in lines if line and not line.startswith(("File ", "During:", "^", "def ", "<source"))
+               and "Failed in nopython mode pipeline" not in line]
+    places = [line.rstrip(":") for line in lines if line.startswith("File ")
+              and "minidem_kernel_" not in line and f"minidem{os.sep}kernel.py" not in line]
+    where = f" ({places[-1]})" if places else ""
+    return ("; ".join(message[:2]) or lines[0]) + where
+
+
+_ROW, _FLOAT, _VECTOR = (numba.types.Array(numba.types.float64, 1, "C"), numba.types.float64,
+                         numba.types.UniTuple(numba.types.float64, 3))
+# a contact's history as the kernel hands it over (minidem.contact.history)
+_HISTORY = contact_history.contact_history
+# the argument types the kernel passes a law's force function (minidem.contact.laws.FORCE_ARGUMENTS)
+_FORCE_SIGNATURE = (_ROW, *(_FLOAT,) * 5, _VECTOR, _VECTOR, _HISTORY)
+# a law with a couple (law.couples) also takes the relative spin, the normal and dt
+_COUPLE_FORCE_SIGNATURE = (*_FORCE_SIGNATURE, _VECTOR, _VECTOR, _FLOAT)
+
+
+def force_signature(law: laws.ContactLaw) -> tuple:
+    """The argument types the kernel passes the law's force function."""
+    return _COUPLE_FORCE_SIGNATURE if law.couples else _FORCE_SIGNATURE
+
+# the argument types a part's function is called with (minidem.contact.laws.PART_ARGUMENTS)
+# and how many numbers it returns (0: one number)
+_PART_SIGNATURES = {
+    "normal": ((_ROW, *(_FLOAT,) * 4, _HISTORY), 3),
+    "damping": ((_ROW, *(_FLOAT,) * 6), 0),
+    "tangential": ((_ROW, *(_FLOAT,) * 7, _VECTOR, _VECTOR, _HISTORY), 3),
+    "rolling": ((_ROW, *(_FLOAT,) * 6, _VECTOR, _VECTOR, _HISTORY), 3),
+    "twisting": ((_ROW, *(_FLOAT,) * 8, _HISTORY), 0),
+}
+
+
+def _compiled_alone(function, signature, count: int, what: str, shape: str) -> str | None:
+    """Why ``function`` does not compile with ``signature`` or does not return ``count``
+    numbers (0: one number), naming its file and line; None when it is fine."""
+    func = function.py_func
+    try:
+        _, line = inspect.getsourcelines(func)
+        where = f"{func.__qualname__} in {inspect.getsourcefile(func)}, line {line}"
+    except (OSError, TypeError):
+        where = func.__qualname__
+    try:
+        function.compile(signature)
+    except numba.core.errors.NumbaError as alone:
+        return f"its {what} {where} does not compile: {_numba_cause(alone)}"
+    returned = function.overloads[signature].signature.return_type
+    number = (numba.types.Float, numba.types.Integer)
+    if count == 0:
+        if not isinstance(returned, number):
+            return f"its {what} {where} must return a number ({shape}), it returns {returned}"
+    elif not (isinstance(returned, numba.types.BaseTuple) and len(returned) == count
+              and all(isinstance(t, number) for t in returned)):
+        return f"its {what} {where} must return {count} numbers ({shape}), it returns {returned}"
+    return None
+
+
+def force_problem(law: laws.ContactLaw, exc: Exception) -> str:
+    """Why a law's force function broke the kernel's compilation: compiled alone with the
+    engine's argument types (each part of a combination with its kind's), so the message
+    names the law's or the part's function and file (and a wrong return value), not the
+    kernel line that called it."""
+    shapes = {"normal": "elastic force, stiffness, contact radius", "damping": "the dashpot's force",
+              "tangential": "ftx, fty, ftz", "rolling": "the couple mx, my, mz", "twisting": "the couple about n"}
+    for part in law.parts:
+        signature, count = _PART_SIGNATURES[part.kind]
+        why = _compiled_alone(part.function, signature, count, "function", shapes[part.kind])
+        if why:
+            return f"{part.kind} part '{part.name}': {why}"
+    if not law.parts:
+        why = _compiled_alone(law.force, _FORCE_SIGNATURE, 4, "force function", "fn, ftx, fty, ftz")
+        if why:
+            return why
+    return f"its force function does not compile in the engine: {_numba_cause(exc)}"

@@ -1,0 +1,391 @@
+"""The arrays the compiled kernel advances (:class:`State`), grouped as it takes them, and
+the copies of them a run keeps: the last good state, checkpoints and the final state.
+
+A :class:`minidem.engine.simulation.Simulation` makes one per run; the run loop
+(:mod:`minidem.engine.run_loop`) hands its tuples to the kernel, copies them between
+chunks (:meth:`State.capture`) and puts a copy back after a failure or on resume
+(:meth:`State.restore`), bit for bit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from minidem.engine import integrate
+from minidem.errors import MinidemError
+from minidem.geometry import neighbours
+from minidem.geometry.order import mean_step
+from minidem.scene.scenario import Scene
+
+# State arrays a checkpoint holds: particle arrays, then the contact arrays of each
+# argument tuple by position (None: fixed by the scene, not saved)
+STATE_ARRAYS = ("position", "velocity", "angular_velocity", "force", "torque", "position_at_build")
+_STATE_TUPLES = {
+    # per near-plane entry (State.list_near_planes); the list itself follows from the
+    # position at the last build (State.restore makes it again)
+    "planes": (None, None, None, "plane_history", "plane_overlap", None, None),
+    "cylinders": (None, None, None, None, None, "cylinder_history", "cylinder_overlap"),
+    "meshes": (None, None, "mesh_offsets", "mesh_candidates", "mesh_history", "mesh_overlap"),
+    # the reactions' slots and the transposed offsets follow from the list (State.restore
+    # recomputes them); the reactions are kept: a step rewrites them before reading, but
+    # the last good state's VTK frame and contact forces read them as they are
+    "pairs": ("pair_offsets", "pair_neighbours", "pair_history", "pair_overlap", "pair_reaction", None, None,
+              "pair_reaction_in_use", None),
+}
+
+
+# per-contact arrays whose rows are all zero while the contact is not touching (a contact
+# that ends drops its history and its reaction): the last good state keeps only the rows
+# in use (State.capture)
+_SPARSE_ROWS = ("plane_history", "cylinder_history", "mesh_history", "pair_history", "pair_reaction",
+                "pair_reaction_in_use")
+# The Verlet lists follow from the position at the last build (State.build_lists: the
+# same lists, bit for bit), so a capture does not hold them and State.restore makes them
+# again. Held, the old lists stayed resident from a rebuild to the next copy of the state,
+# and at the rebuild itself beside the old and the new list: 20 bytes a particle of the
+# settle scene at 1,000,000 (docs/benchmarks.md, "Memory per particle"). Files hold them
+# (RunLoop.write_state): a script reading pair_history needs its pairs.
+LISTS = ("pair_offsets", "pair_neighbours", "mesh_offsets", "mesh_candidates")
+_SPARSE_PARTS = ("@rows", "@values", "@shape")
+_SPARSE_BLOCK = 1 << 16  # rows scanned at a time
+
+
+def _sparse_rows(name: str, array: np.ndarray) -> dict[str, np.ndarray]:
+    """``array`` as its rows (first index) that hold any non-zero bit: {name@rows: their
+    indices, name@values: the rows, name@shape: the shape}. Bits, not values, so a row
+    of -0.0 is kept and the expansion gives every bit back."""
+    rows = np.zeros(0, dtype=np.int64)
+    if array.size:
+        # an OR of the columns' bits, then np.take: several times faster than
+        # (bits != 0).any(axis=1) and fancy indexing (settle, N = 200,000); a block of
+        # rows at a time, so that the flags are not one more whole-array temporary at the
+        # peak of a large run (8 bytes a row: 24 MiB for the pair list at N = 1,000,000)
+        row_bytes = array.reshape(array.shape[0], -1).view(np.uint8)
+        # rows of whole 8-byte words (the histories and reactions) as such; others (the
+        # touching flags, a byte a row) byte by byte
+        bits = row_bytes.view(np.uint64) if row_bytes.shape[1] % 8 == 0 else row_bytes
+        found = [rows]
+        for start in range(0, bits.shape[0], _SPARSE_BLOCK):
+            block = bits[start:start + _SPARSE_BLOCK]
+            in_use = block[:, 0].copy()
+            for column in range(1, block.shape[1]):
+                in_use |= block[:, column]
+            found.append(np.flatnonzero(in_use) + start)
+        rows = np.concatenate(found)
+    return {name + "@rows": rows, name + "@values": np.take(array, rows, axis=0),
+            name + "@shape": np.array(array.shape, dtype=np.int64)}
+
+
+def _full_array(arrays: dict, name: str) -> np.ndarray:
+    """The array ``name`` of a capture, expanded if it was captured sparse."""
+    if name in arrays:
+        return arrays[name]
+    full = np.zeros(tuple(arrays[name + "@shape"]), dtype=arrays[name + "@values"].dtype)
+    full[arrays[name + "@rows"]] = arrays[name + "@values"]
+    return full
+
+
+def full_arrays(arrays: dict) -> dict[str, np.ndarray]:
+    """A capture with its sparse arrays expanded: the arrays a checkpoint file holds."""
+    out = {name: array for name, array in arrays.items() if "@" not in name}
+    for name in _SPARSE_ROWS:
+        if name + "@rows" in arrays:
+            out[name] = _full_array(arrays, name)
+    return out
+
+
+def pair_index_type(n_entries: int, n_particles: int):
+    """The integer type of the pair list's partners and reaction slots: int32 below 2^31
+    entries and particles (4 bytes an entry saved twice, and once more in the last good
+    state), else int64. One type for every list of a run, so the kernel is compiled for
+    one signature."""
+    return np.int32 if max(n_entries, n_particles) < 2**31 else np.int64
+
+
+def numpy_owned(array: np.ndarray) -> np.ndarray:
+    """``array`` (made by compiled code), copied into memory numpy allocates if it is 4 MiB
+    or more. numpy asks Linux for transparent huge pages for such arrays (madvise; the
+    usual setting allows them only where asked), numba's allocator does not: the force
+    pass reads the list's arrays every step, and at 1,000,000 spheres it ran 6 % slower
+    with them on small pages (docs/benchmarks.md, "The list build: one scan, and huge
+    pages"). The copy costs about 10 ms a list build there, and the compiled array is
+    released at once."""
+    return np.array(array) if array.nbytes >= 1 << 22 else array
+
+
+def pair_arrays(offsets, partners, history, overlap, slot, reverse_offsets):
+    """The kernel's pair tuple for a new list (``State.pairs``): its reactions zero and no
+    pair touching yet. The reactions are in the transposed list's order (row ``slot[e]``
+    for entry e), and so is ``reaction_in_use``, which marks the rows holding a touching
+    pair's reaction; the force pass stores them for the partners finish_kick_drift
+    finishes and, at a call's last step, for every touching pair (State.contact_pairs),
+    and sums the others' straight into their force rows, marking those particles in
+    ``reaction_pending`` (a byte a particle, zero between passes; see
+    minidem.engine.kernel)."""
+    return (offsets, partners, history, overlap, np.zeros((partners.shape[0], 6)), slot, reverse_offsets,
+            np.zeros(partners.shape[0], dtype=np.uint8), np.zeros(offsets.shape[0] - 1, dtype=np.uint8))
+
+
+class State:
+    """The arrays the compiled kernel advances, grouped as it takes them.
+
+    ``pairs`` and ``meshes`` hold Verlet lists (CSR) with one history row per entry, and
+    ``planes`` the list of planes near each sphere likewise (:meth:`list_near_planes`);
+    :meth:`Simulation.rebuild` replaces them, carrying every entry's history over.
+    """
+
+    def __init__(self, sim):
+        """The state of ``sim`` (a :class:`minidem.engine.simulation.Simulation`, not
+        imported here: the simulation builds its state) at its start time."""
+        scene, walls = sim.scene, sim.scene.walls
+        n, h = scene.n_particles, sim.law.history_size
+        # the state at sim.start_time (t = 0, or first touch after an analytic flight)
+        self.position = sim.start_position.copy()
+        self.velocity = sim.start_velocity.copy()
+        self.angular_velocity = scene.angular_velocity.copy()
+        self.force = np.zeros((n, 3))
+        self.torque = np.zeros((n, 3))
+        self.follow_scene(scene)
+        self.input_radius = sim.input_scene.radius  # the scenario's order (lists_of)
+        # the mean distance of consecutive particles when they were last sorted (or at the
+        # start): Simulation.rebuild sorts them again when they drift far from it
+        self.sorted_step, self.sorts = mean_step(self.position), 0
+        self.law = (sim.pair_row, sim.constants)
+        # Plane contacts are kept per near-plane entry (neighbours.near_planes, CSR): the
+        # planes each sphere may touch before the next list build, listed at each build
+        # (list_near_planes), with each entry's history and last overlap, carried over to
+        # the new list like a pair's. The kernel checks only those planes. Every plane is
+        # listed for every sphere (margin None) in a scene without list builds, and for the
+        # tracked (serial) kernel: its contact statistics interpolate each plane's touch and
+        # separation times from the overlap of the step before, which a plane skipped since
+        # the last build would hold stale.
+        self.plane_margin = sim.skin + sim.max_reach if sim.parallel and (sim.pairs or walls.triangles.shape[0]) \
+            else None
+        self.history_size = h
+        # what the Verlet lists are built with (build_lists)
+        self.has_pairs, self.pair_cutoff, self.mesh_skin = sim.pairs, sim.skin + sim.max_reach, sim.skin
+        self.planes = (scene.wall_point, scene.wall_normal, scene.wall_material)
+        self.position_at_build = self.position.copy()
+        self.list_near_planes()
+        if sim.start_time > 0.0:
+            # touching after an analytic flight: rounding may put the sphere a hair inside
+            # the wall, but the previous overlap must read 'not yet touching' for the
+            # first touch to be recorded
+            np.minimum(self.planes[4], 0.0, out=self.planes[4])
+        n_cylinders = walls.cylinder_base.shape[0]
+        self.cylinders = (walls.cylinder_base, walls.cylinder_axis, walls.cylinder_radius, walls.cylinder_length,
+                          walls.cylinder_material, np.zeros((n, n_cylinders, h)), np.full((n, n_cylinders), -1.0))
+        empty_index = np.zeros(0, dtype=np.int64)
+        self.meshes = (walls.triangles, walls.triangle_material, np.zeros(n + 1, dtype=np.int64), empty_index,
+                       np.zeros((0, h)), np.zeros(0))
+        # (offsets, partners, history, overlap, reactions (force on i, torque on j) in the
+        # transposed list's order, each entry's slot there,
+        # transposed offsets, whether each slot's pair touches: pair_arrays)
+        pair_index = np.zeros(0, dtype=pair_index_type(0, n))
+        self.pairs = pair_arrays(np.zeros(n + 1, dtype=np.int64), pair_index, np.zeros((0, h)), np.zeros(0), pair_index,
+                                 np.zeros(n + 1, dtype=np.int64))
+        # each particle's first partner in the list (the smallest i whose row lists it,
+        # itself if none; neighbours.reverse_index): the threads' blocks need it before
+        # every call, and it changes only with the list (Simulation.rebuild, restore)
+        self.first_partner = np.arange(n)
+        self.builds = 0
+
+    def follow_scene(self, scene: Scene) -> None:
+        """The kernel's particle tuple with the scene's arrays (mass, radius, material) in
+        the order the scene stores the particles (Simulation.use_order)."""
+        self.mass, self.radius, self.particle_id = scene.mass, scene.radius, scene.particle_id
+        self.particles = (self.position, self.velocity, self.angular_velocity, self.force, self.torque,
+                          self.mass, 1.0 / self.mass, 1.0 / self.inertia, self.radius, scene.particle_material)
+
+    @property
+    def inertia(self) -> np.ndarray:
+        """Each particle's moment of inertia (kg m^2), the bits of Scene.inertia, from the
+        mass kept here: Scene computes the mass anew at each access, 1.5 ms at 200,000
+        particles, and the run loop reads the inertia at every call and sample. Not kept
+        itself: 8 bytes a particle more at a list build, the peak of a large run."""
+        return 0.4 * self.mass * self.radius**2
+
+    def list_near_planes(self) -> None:
+        """The planes each sphere may touch until the next list build (at position_at_build),
+        as the kernel's plane tuple (point, normal, material, history (entries, h), last
+        overlap (entries,), near offsets, near planes). An entry of the old list for the
+        same (sphere, plane) hands over its history and last overlap
+        (``neighbours.carry_history``); a new one starts with no history and the current
+        overlap (at a rebuild it is below -(skin / 2 + reach): not touching, for any law).
+        Every plane for every sphere (no margin): the list never changes, nothing to do
+        after the first."""
+        wall_point, wall_normal, wall_material = self.planes[:3]
+        if self.plane_margin is None and len(self.planes) == 7:
+            return
+        offsets, planes = self.near_plane_list()
+        # zeros from the operating system: rows no contact is carried into stay unwritten
+        # (not resident) until a sphere touches that plane
+        history = np.zeros((planes.shape[0], self.history_size))
+        overlap = self.plane_overlaps(offsets, planes)
+        if len(self.planes) == 7:
+            neighbours.carry_history(*self.planes[5:], *self.planes[3:5], offsets, planes, history, overlap)
+        self.planes = (wall_point, wall_normal, wall_material, history, overlap, offsets, planes)
+
+    def build_lists(self, position: np.ndarray | None = None, radius: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The Verlet lists at ``position`` (default position_at_build), by their names in a
+        capture (LISTS): the pairs closer than their radii plus ``pair_cutoff`` (partners
+        int32 below 2**31 entries, ``pair_index_type``) and the mesh triangles within
+        ``mesh_skin``. What :meth:`Simulation.rebuild` makes, and :meth:`restore` makes
+        again, bit for bit."""
+        n = self.position.shape[0]
+        radius = self.particles[8] if radius is None else radius
+        position = self.position_at_build if position is None else position
+        lists = {"pair_offsets": np.zeros(n + 1, dtype=np.int64),
+                 "pair_neighbours": np.zeros(0, dtype=pair_index_type(0, n)),
+                 "mesh_offsets": np.zeros(n + 1, dtype=np.int64), "mesh_candidates": np.zeros(0, dtype=np.int64)}
+        if self.has_pairs:
+            offsets, found = neighbours.build_pairs(position, radius, self.pair_cutoff)
+            lists["pair_offsets"] = numpy_owned(offsets)
+            lists["pair_neighbours"] = numpy_owned(found.astype(pair_index_type(found.shape[0], n), copy=False))
+        if self.meshes[0].shape[0]:
+            lists["mesh_offsets"], lists["mesh_candidates"] = neighbours.mesh_candidates(
+                position, radius, self.mesh_skin, self.meshes[0])
+        return lists
+
+    def lists_of(self, arrays: dict) -> dict[str, np.ndarray]:
+        """The Verlet lists of a capture (which holds none, LISTS): the live ones if it
+        was taken since the last list build (it holds the live position at build), else
+        made from its position at build (also while a rebuild has let go of the live pair
+        list: an interrupt's checkpoint)."""
+        if self.pairs is not None and np.array_equal(arrays["position_at_build"], self.position_at_build):
+            return {name: array for name, array in self.live_arrays().items() if name in LISTS}
+        # with the radii in the order the capture was taken in (a run may have sorted the
+        # particles since: Simulation.sort_in_space)
+        stored = arrays.get("particle_id")
+        return self.build_lists(arrays["position_at_build"],
+                                self.input_radius if stored is None else self.input_radius[stored])
+
+    def near_plane_list(self) -> tuple[np.ndarray, np.ndarray]:
+        """(offsets, planes): the planes near each sphere at position_at_build, CSR."""
+        radius = self.particles[8]  # the particle tuple's radius (kernel order)
+        return neighbours.near_planes(self.position_at_build, radius, self.planes[0], self.planes[1],
+                                      self.plane_margin)
+
+    def plane_overlaps(self, offsets, planes) -> np.ndarray:
+        """The overlap R - (x - p) . n of each near-plane entry's sphere with its plane, now."""
+        wall_point, wall_normal = self.planes[:2]
+        sphere = neighbours.rows_of_entries(offsets)
+        return self.particles[8][sphere] - np.einsum("ek,ek->e", self.position[sphere] - wall_point[planes],
+                                                     wall_normal[planes])
+
+    def plane_contacts(self):
+        """(sphere, plane) of every near-plane entry, aligned with the plane histories and
+        overlaps (planes[3], planes[4])."""
+        offsets, planes = self.planes[5:7]
+        return neighbours.rows_of_entries(offsets), planes
+
+    def contact_pairs(self):
+        """(pairs (M, 2) particle indices as stored, normal force (M,) N) of touching particle
+        pairs."""
+        offsets, neighbours_, _, overlap, reaction, slot = self.pairs[:6]
+        first = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+        touching = overlap > 0.0
+        i, j = first[touching], neighbours_[touching]
+        normal = self.position[i] - self.position[j]
+        normal /= np.linalg.norm(normal, axis=1)[:, None]
+        return np.column_stack([i, j]), np.einsum("mk,mk->m", reaction[slot[touching], :3], normal)
+
+    # -- checkpoints -------------------------------------------------------------
+    def capture(self, into: dict | None = None) -> dict[str, np.ndarray]:
+        """Copies of every array the kernel carries from one step to the next (the contact
+        histories exactly as they are, rows aligned with the lists at the position at
+        build); the Verlet lists not at all (``LISTS``: :meth:`restore` makes them
+        again from the position at build, :meth:`lists_of` for a file).
+
+        ``into``: an earlier capture, overwritten in place and returned: its arrays are
+        reused where their shapes still fit (a copy into existing memory is ten times
+        cheaper than a new allocation), and one that no longer fits is released before
+        its replacement is allocated, so that a run never holds two old copies.
+
+        The per-contact histories and reactions (``_SPARSE_ROWS``) are kept as their
+        non-zero rows only (see :func:`_sparse_rows`): a row is zero while its
+        wall or pair is not touching, most of them in a pile (a sphere of the settle
+        scene touches no wall, and about two in three of its listed pairs are apart),
+        so the last good state costs about half the memory of the live one.
+        :meth:`restore` and :func:`full_arrays` (what a checkpoint file holds) give the
+        same bits back.
+        """
+        live = self.live_arrays()
+        del live["builds"]
+        arrays = {} if into is None else into
+        for name, array in live.items():
+            target = arrays.pop(name, None)
+            if name in LISTS:
+                del target
+            elif name in _SPARSE_ROWS:
+                del target
+                for part in _SPARSE_PARTS:
+                    arrays.pop(name + part, None)  # the old copy goes before the new one is made
+                arrays.update(_sparse_rows(name, array))
+            elif target is not None and target.shape == array.shape and target.dtype == array.dtype:
+                np.copyto(target, array)
+                arrays[name] = target
+            else:
+                del target
+                for part in _SPARSE_PARTS:
+                    arrays.pop(name + part, None)
+                arrays[name] = array.copy()
+        arrays["builds"] = np.array(self.builds, dtype=np.int64)
+        return arrays
+
+    def live_arrays(self) -> dict[str, np.ndarray]:
+        """The arrays :meth:`capture` copies, as they are (no copy: for a file written
+        before the kernel runs again, e.g. the final state)."""
+        live = {name: getattr(self, name) for name in STATE_ARRAYS}
+        for group, names in _STATE_TUPLES.items():
+            live.update((name, array) for name, array in zip(names, getattr(self, group)) if name is not None)
+        live["builds"] = np.array(self.builds, dtype=np.int64)
+        live["sorted_step"] = np.array([self.sorted_step])  # m; an array of one, as the files hold
+        if self.particle_id is not None:  # rows in a stored order (Simulation.use_order)
+            live["particle_id"] = self.particle_id
+        return live
+
+    def restore(self, arrays: dict) -> None:
+        for name in STATE_ARRAYS:  # in place: the kernel's particle tuple holds these arrays
+            getattr(self, name)[...] = arrays[name]
+        # a capture holds no lists (LISTS): those of the restored position at build, again
+        lists = {} if all(name in arrays for name in LISTS) else self.build_lists()
+        for group, names in _STATE_TUPLES.items():
+            items = list(getattr(self, group))
+            for k, name in enumerate(names):
+                if name in lists:
+                    items[k] = lists[name]
+                elif name is not None:  # replaced: list rebuilds change the lengths
+                    items[k] = np.array(_full_array(arrays, name), dtype=items[k].dtype, order="C")
+            setattr(self, group, tuple(items))
+        # (the list's partners, the histories): one row each per entry
+        for what, listed, histories in (("pair", self.pairs[1], self.pairs[2]),
+                                        ("mesh", self.meshes[3], self.meshes[4])):
+            if histories.shape[0] != listed.shape[0]:
+                raise MinidemError(f"the saved {what} contacts ({histories.shape[0]} entries) do not match the "
+                                   f"Verlet list at the saved last list build ({listed.shape[0]}): the state was "
+                                   "not written by this version of minidem for this scene")
+        offsets, partners = self.pairs[:2]
+        if partners.shape[0]:
+            reverse_offsets, slot, self.first_partner = neighbours.reverse_index(offsets, partners, len(offsets) - 1)
+        else:
+            reverse_offsets, slot = np.zeros_like(offsets), partners.copy()
+            self.first_partner = np.arange(len(offsets) - 1)
+        self.pairs = self.pairs[:5] + (slot, reverse_offsets) + self.pairs[7:]
+        # the plane entries' history and overlap restored above belong to the list of
+        # the planes near each sphere at the restored position_at_build: that list, again
+        offsets, planes = self.near_plane_list()
+        if planes.shape[0] != self.planes[4].shape[0] or planes.shape[0] != self.planes[3].shape[0]:
+            raise MinidemError(f"the saved plane contacts ({self.planes[4].shape[0]} entries) do not match the "
+                               f"planes near each sphere at the saved last list build ({planes.shape[0]}): the "
+                               "state was not written by this version of minidem for this scene")
+        self.planes = self.planes[:5] + (offsets, planes)
+        self.builds = int(arrays["builds"])
+        self.sorted_step = float(np.asarray(arrays["sorted_step"]).reshape(-1)[0])
+
+    def count_contacts(self) -> int:
+        return int(np.count_nonzero(self.pairs[3] > 0) + np.count_nonzero(self.planes[4] > 0)
+                   + np.count_nonzero(self.cylinders[6] > 0) + np.count_nonzero(self.meshes[5] > 0))
+
+    def kinetic_energy(self, inertia) -> float:
+        return float(integrate.kinetic_energy(self.mass, inertia, self.velocity, self.angular_velocity))
