@@ -14,3 +14,9 @@ error from it without importing another stage.
 
 class MinidemError(Exception):
     """Base of every error minidem raises on purpose (bad input, a broken law, a failed run)."""
+
+
+class ScenarioError(MinidemError):
+    """Bad input: the CLI prints the message and exits with code 2. Raised by the scenario
+    reader (``minidem.scene.scenario``, which every caller imports it from) and by the
+    checks of what its values imply (``minidem.scene.derived``), which lies below it."""

@@ -27,7 +27,7 @@ import pytest
 from conftest import OBLIQUE, REPO, minidem_command, run_cli, without_progress
 from test_scenario_errors import SPHERES
 from minidem import cli, files
-from minidem.engine import checkpoint, run_loop, simulation
+from minidem.engine import checkpoint, notices, simulation
 from minidem.scene import scenario
 
 SCENARIOS = REPO / "scenarios"
@@ -606,7 +606,7 @@ def test_a_slow_prepare_says_what_is_being_prepared(monkeypatch):
 
     law = dataclasses.replace(base, name="slow", prepare=slow_prepare)
     entry = types.SimpleNamespace(law=law, distribution="minidem-slow", version="0", plugin="slow")
-    monkeypatch.setattr(run_loop, "SLOW_NOTICE_S", 0.2)
+    monkeypatch.setattr(notices, "SLOW_NOTICE_S", 0.2)
     told = []
     scene = scenario.load_scene(OBLIQUE, ['contact.law="ls"'])
     simulation.Simulation(scene, registry=types.SimpleNamespace(entry=lambda name: entry), compile=False,

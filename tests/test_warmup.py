@@ -74,7 +74,7 @@ def test_the_run_loads_the_kernel_the_helper_compiled_beside_the_check(tmp_path)
     the same Simulation and the same argument types as the run. scenarios/settle.toml's
     law is a combination (hm+epsd+sds_twisting): before the check the run's process also
     compiles its force_alone, the law's copy the kernel calls at a wall
-    (warmup._compile_called_force), for the helper's kernel to load (only the run's side
+    (warmup.compile_called_force), for the helper's kernel to load (only the run's side
     is seen here: compiled once, before the check)."""
     scene = "scenarios/settle.toml"
     found, env = _load_with_helper(tmp_path, scene)
@@ -178,7 +178,7 @@ plain, started = warmup._python, []
 
 
 def spy(code, **kwargs):  # every helper process, and whether this process had imported numba then
-    started.append(["numba" in sys.modules, "warmup.serve()" in code])
+    started.append(["numba" in sys.modules, "helper.serve()" in code])
     return plain(code, **kwargs)
 
 

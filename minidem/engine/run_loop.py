@@ -20,6 +20,7 @@ from minidem import __version__, codecache
 from minidem.contact import laws
 from minidem.engine import blocks, integrate, kernel, warmup
 from minidem.engine.law_signature import force_problem
+from minidem.engine.notices import notice_if_slow
 from minidem.engine.state import LISTS, State, full_arrays
 from minidem.errors import MinidemError
 from minidem.scene.scenario import Scene, ScenarioError
@@ -612,29 +613,6 @@ def _interrupts_deferred():
             signal.signal(number, handler if handler is not None else signal.SIG_DFL)
         if caught:  # now, to the handlers the run had (KeyboardInterrupt, or the CLI's SIGTERM)
             signal.raise_signal(caught[0])
-
-
-# A step of the set-up (a law's prepare(), the kernel's compilation) that takes longer
-# than this is announced, so the user knows what minidem is waiting for.
-SLOW_NOTICE_S = 2.0
-
-
-@contextlib.contextmanager
-def notice_if_slow(notify, text: str):
-    """Call ``notify(text)`` (from a timer thread) if the block runs longer than SLOW_NOTICE_S."""
-    if notify is None:
-        yield
-        return
-    import threading
-
-    timer = threading.Timer(SLOW_NOTICE_S, notify, args=(f"{text} ({SLOW_NOTICE_S:g} s so far)",))
-    timer.daemon = True
-    timer.start()
-    try:
-        yield
-    finally:
-        timer.cancel()
-        timer.join()  # a notice being printed is finished before the block's caller goes on
 
 
 def interrupted(exc: BaseException) -> bool:

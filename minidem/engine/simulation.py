@@ -26,7 +26,8 @@ import numpy as np
 from minidem import __version__, codecache
 from minidem.contact import history as contact_history, laws
 from minidem.engine import compile_speed, integrate, kernel
-from minidem.engine.run_loop import RunLoop, RunResult, notice_if_slow
+from minidem.engine.notices import notice_if_slow
+from minidem.engine.run_loop import RunLoop, RunResult
 from minidem.engine.state import STATE_ARRAYS, State, pair_arrays
 from minidem.geometry import neighbours, primitives
 from minidem.geometry.order import exchange_pairs, mean_step, permute_rows, scattered, spatial_order

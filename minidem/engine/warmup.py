@@ -7,7 +7,8 @@ machine and cached for every later kernel: the neighbour search (``build_pairs``
 ``carry_history``, ``reverse_index``, ``mesh_candidates``) and the blow-up guard's
 survey and kinetic energy. Neither needs the other to compile (numba compiles each
 function on its own and links only what it calls), so when the shared functions are not
-in numba's cache yet, :func:`start` compiles them in a second process while this one
+in numba's cache yet, :func:`start` has them compiled in a second process (its side:
+:mod:`minidem.engine.helper`) while this one
 compiles the kernel, and the run loads them from the cache when it needs them
 (:func:`Helper.wait` first). What it takes off the critical path: ~1 s of CPU (the
 guard's survey and the kinetic energy) in the first run of scenarios/oblique.toml, ~3 s
@@ -28,7 +29,7 @@ two is free first. First run of scenarios/settle.toml: the two
 compilations side by side instead of one after the other. A combination's kernel calls
 its ``force_alone`` at walls (``minidem.contact.compose``): this process compiles that
 first, before the check, while the helper inlines the kernel's functions, so the
-kernel's typing loads it from the cache (:func:`_compile_called_force`).
+kernel's typing loads it from the cache (:func:`compile_called_force`).
 
 A preset law's force function is compiled on its own and linked into the kernel, so the
 helper compiles it first (oblique: the hmd law, ~1.2 s) and the kernel's typing waits
@@ -36,7 +37,7 @@ for it (:meth:`Helper.law_compiled`); a combination's is inlined into the kernel
 of pair contacts and compiled with it, and its copy for walls (``force_alone``) is the
 one the helper compiles first (``minidem.contact.laws.called_force``). On a fresh
 install ``minidem run`` starts the helper before it imports numba and the engine
-(:func:`prestart`): the helper imports them while the run does (:func:`serve`), and is
+(:func:`prestart`): the helper imports them while the run does (``helper.serve``), and is
 handed its job (either of the two above) once the run has read the
 scene; started after those imports, it reached the law ~0.35 s after the kernel's typing
 did. The helper imports from the run's ``sys.path`` (:func:`_python`), so that it
@@ -128,7 +129,7 @@ def compile_shared(pairs: bool, meshes: bool) -> None:
 def compile_guard(reverse: bool = False) -> None:
     """Compile (into numba's cache) the blow-up guard's survey and the kinetic energy
     (``reverse``: in the other order, for a second process doing the same, see
-    :func:`compile_kernel_of_scene`)."""
+    ``minidem.engine.helper.compile_kernel_of_scene``)."""
     import numpy as np
 
     from minidem.engine import blowup, integrate
@@ -223,12 +224,8 @@ def _python(code: str, stdin, stdout) -> subprocess.Popen:
                             stdin=stdin, stdout=stdout, stderr=subprocess.DEVNULL)
 
 
-# the jobs a helper takes (functions of this module), by name
-_JOBS = ("compile_for_run", "compile_kernel_of_scene")
-
-
 def _spawn(job: str, arguments: tuple = (), stdin_bytes: bytes | None = None, law_first: bool = False) -> Helper:
-    """A helper doing ``job(*arguments)`` (one of _JOBS) with ``stdin_bytes`` on its
+    """A helper doing ``job(*arguments)`` (one of ``minidem.engine.helper.JOBS``) with ``stdin_bytes`` on its
     standard input: the helper :func:`prestart` started, if there is one, else a new one."""
     global _PRESTARTED
     process, _PRESTARTED = _PRESTARTED, None
@@ -237,7 +234,7 @@ def _spawn(job: str, arguments: tuple = (), stdin_bytes: bytes | None = None, la
         payload = (json.dumps([job, list(arguments)]) + "\n").encode() + (stdin_bytes or b"")
     else:
         try:
-            process = _python(f"from minidem.engine import warmup; warmup.{job}(*{tuple(arguments)!r})",
+            process = _python(f"from minidem.engine import helper; helper.{job}(*{tuple(arguments)!r})",
                               stdin=subprocess.DEVNULL if stdin_bytes is None else subprocess.PIPE,
                               stdout=subprocess.PIPE if law_first else subprocess.DEVNULL)
         except OSError:
@@ -259,7 +256,7 @@ _PRESTARTED: subprocess.Popen | None = None
 def prestart() -> None:
     """Start the helper of a first run now, before this process imports numba and the
     engine: ``minidem run`` calls this first thing. The helper imports them meanwhile
-    (0.3-0.4 s in either process, :func:`serve`) and then waits for its job
+    (0.3-0.4 s in either process, ``helper.serve``) and then waits for its job
     (:func:`_spawn`: the law and the shared functions, or the scene's kernel), which the
     run decides once it has read the scene; or for none (:func:`dismiss`). Started from the run's process once its
     engine was imported, the helper spent its first 0.4 s importing while the run
@@ -277,7 +274,7 @@ def prestart() -> None:
     try:
         if any(codecache.kernel_cache_path().glob("minidem_kernel_*.py")):
             return
-        _PRESTARTED = _python("from minidem.engine import warmup; warmup.serve()", stdin=subprocess.PIPE,
+        _PRESTARTED = _python("from minidem.engine import helper; helper.serve()", stdin=subprocess.PIPE,
                               stdout=subprocess.PIPE)
     except OSError:  # an unreadable cache folder or no process: the run starts its helper itself
         _PRESTARTED = None
@@ -290,29 +287,6 @@ def dismiss() -> None:
     if process is not None:
         Helper(process).stop()
         process.stdin.close()
-
-
-def serve() -> None:
-    """The prestarted helper's side: its job from the first line of standard input
-    (:func:`_spawn`); none when the input ends first.
-
-    First it imports what every job needs, while the run reads its scene: numba and the
-    engine, and the registry of laws (the installed plugins). Imported after the job
-    arrived, as they were until 2026-11-27, they took the first 0.4-0.7 s of the job, on
-    the critical path of a scene whose kernel the helper compiles (settle.toml)."""
-    try:
-        from minidem.contact import laws
-        from minidem.engine import simulation  # noqa: F401  (numba, the engine's functions, compile_speed)
-
-        laws.registry()
-    except Exception:  # the job imports them again and the run reports what fails
-        pass
-    line = sys.stdin.buffer.readline()
-    if not line.strip():
-        return
-    job, arguments = json.loads(line)
-    if job in _JOBS:
-        globals()[job](*arguments)
 
 
 def _second_cpu() -> bool:
@@ -342,19 +316,6 @@ def start(pairs: bool, meshes: bool, law=None) -> Helper:
                   law_first=law_first)
 
 
-def compile_for_run(law_name: str | None, shared: bool, pairs: bool, meshes: bool) -> None:
-    """The helper's side of :func:`start`: the law's force function for the types the
-    kernel passes it (then "law" on standard output: the run waits for that line before
-    it would compile it itself), then the shared functions."""
-    if law_name is not None:
-        try:
-            _compile_called_force(law_name)
-        finally:
-            print("law", flush=True)  # compiled or not: the run must not wait any longer
-    if shared:
-        compile_shared(pairs, meshes)
-
-
 # scenes whose kernel a helper compiles (id -> (scene, helper)), until their run takes it
 _KERNEL_HELPERS: dict[int, tuple] = {}
 
@@ -382,7 +343,7 @@ def kernel_beside_check(scene, notify=None):
             yield
         else:
             from minidem.codecache import cache_directory
-            from minidem.engine.run_loop import notice_if_slow
+            from minidem.engine.notices import notice_if_slow
 
             def told(text):
                 helper.announced = True
@@ -398,7 +359,7 @@ def kernel_beside_check(scene, notify=None):
                 # path). Not a preset law's force: the helper's new kernel drops the cached
                 # code of the functions its law calls (simulation.compile_kernel), which
                 # could undo this process's work
-                _compile_called_force(scene.law_name, combination_only=True)
+                compile_called_force(scene.law_name, combination_only=True)
                 yield
     except BaseException:
         helper.stop()
@@ -407,7 +368,7 @@ def kernel_beside_check(scene, notify=None):
         _KERNEL_HELPERS[id(scene)] = (scene, helper)
 
 
-def _compile_called_force(law_name: str, combination_only: bool = False) -> None:
+def compile_called_force(law_name: str, combination_only: bool = False) -> None:
     """Compile (into numba's cache) the force function the kernel of law ``law_name`` calls
     at a wall (``laws.called_force``), for the types the kernel passes it; with
     ``combination_only``, only a combination's ``force_alone``. Whatever fails here the
@@ -439,19 +400,3 @@ def kernel_helper(scene) -> Helper | None:
     if found is None or found[0] is not scene:
         return None
     return found[1]
-
-
-def compile_kernel_of_scene() -> None:
-    """The helper's side of :func:`kernel_beside_check`: the scene from standard input,
-    its Simulation as ``minidem run`` builds it, and the kernel's ``advance`` compiled for
-    the types of the arguments the run passes (into the caches the run loads it from)."""
-    from minidem.engine import run_loop, simulation
-
-    scene = pickle.load(sys.stdin.buffer)
-    sim = simulation.Simulation(scene)
-    loop = run_loop.RunLoop(sim, 1, None, None, sim.loop_threads(), None, None)
-    loop.compile_kernel()
-    # then the guard's functions, unless the run has compiled them meanwhile (a call loads
-    # them from the cache then), in the other order than the run's: whichever process is
-    # free first takes them
-    compile_guard(reverse=True)

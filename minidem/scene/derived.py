@@ -17,6 +17,8 @@ import math
 
 import numpy as np
 
+from minidem.errors import ScenarioError
+
 # Most steps a run may have: 1e12 steps are a month at a single sphere's 4e5 steps/s
 # (README); more is a mistaken end time, gap or time step, not a run to start.
 MAX_STEPS = 10**12
@@ -53,12 +55,10 @@ def scene_inputs(scene) -> list[tuple[str, float]]:
                    (f"materials.{m.name}.poisson_ratio", m.poisson_ratio),
                    (f"materials.{m.name}.density", m.density)]
     if scene.n_particles:
-        from minidem.scene.scenario import _particle_name
-
         smallest, largest = int(np.argmin(scene.radius)), int(np.argmax(scene.radius))
-        inputs.append((_key_of(_particle_name(scene, smallest), "radius"), float(scene.radius[smallest])))
+        inputs.append((_key_of(scene.particle_name(smallest), "radius"), float(scene.radius[smallest])))
         if largest != smallest:
-            inputs.append((_key_of(_particle_name(scene, largest), "radius"), float(scene.radius[largest])))
+            inputs.append((_key_of(scene.particle_name(largest), "radius"), float(scene.radius[largest])))
     raw = scene.raw if isinstance(scene.raw, dict) else {}
     for section, key in (("impact", "speed"), ("impact", "gap"), ("run", "dt"), ("run", "end_time"),
                          ("run", "skin")):
@@ -69,7 +69,7 @@ def scene_inputs(scene) -> list[tuple[str, float]]:
         speeds = np.abs(scene.velocity).max(axis=1)
         fastest = int(np.argmax(speeds))
         if speeds[fastest] > 0.0 and scene.impact is None:
-            inputs.append((_key_of(_particle_name(scene, fastest), "velocity"), float(speeds[fastest])))
+            inputs.append((_key_of(scene.particle_name(fastest), "velocity"), float(speeds[fastest])))
     gravity = float(np.abs(scene.gravity).max())  # the largest component: a norm could overflow
     if gravity > 0.0:
         inputs.append(("run.gravity", gravity))
@@ -87,8 +87,6 @@ def _key_of(particle: str, key: str) -> str:
 def refusal(scene, what: str, inputs=None):
     """The ScenarioError for a derived quantity out of range: what it is, and the keys it
     comes from, the most extreme value first (that one is almost always the mistake)."""
-    from minidem.scene.scenario import ScenarioError
-
     inputs = scene_inputs(scene) if inputs is None else inputs
     return ScenarioError(f"{scene.source}: {what}: out of the range of a float64 computation (or of a run); "
                          f"it comes from {_suspects(inputs)}; give values of ordinary magnitude (SI units)")
@@ -97,8 +95,6 @@ def refusal(scene, what: str, inputs=None):
 def check_scene(scene) -> None:
     """Each particle's mass, moment of inertia and kinetic energy finite and (mass,
     inertia) > 0; each material's shear modulus E / 2(1 + nu) finite and > 0."""
-    from minidem.scene.scenario import _particle_name
-
     with np.errstate(all="ignore"):
         for m in scene.materials:
             inputs = [(f"materials.{m.name}.youngs_modulus", m.youngs_modulus),
@@ -121,7 +117,7 @@ def check_scene(scene) -> None:
             bad = np.flatnonzero(~np.isfinite(values) | ((values <= 0.0) if name != "kinetic energy" else False))
             if bad.size:
                 i = int(bad[0])
-                particle = _particle_name(scene, i)
+                particle = scene.particle_name(i)
                 material = scene.materials[scene.particle_material[i]].name
                 inputs = []
                 for key in keys:

@@ -21,11 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from minidem.errors import MinidemError
-
-
-class ScenarioError(MinidemError):
-    """Bad input: the CLI prints the message and exits with code 2."""
+from minidem.errors import ScenarioError
+from minidem.scene import derived
 
 
 @dataclasses.dataclass(frozen=True)
@@ -360,6 +357,17 @@ class Scene:
     def scenario_index(self, stored: int) -> int:
         """The scenario's index of the particle stored at ``stored``."""
         return stored if self.particle_id is None else int(self.particle_id[stored])
+
+    def particle_name(self, stored: int) -> str:
+        """The scenario table the particle stored at ``stored`` came from (the [impact]
+        sphere is particle 0), as error messages name it."""
+        index = self.scenario_index(stored)
+        for k, (first, stop) in enumerate(self.fill_ranges):
+            if first <= index < stop:
+                return f"fill[{k}] (particle {index}, sphere {index - first} of the fill)"
+        if self.impact is not None:
+            return "impact" if index == 0 else f"particles[{index - 1}]"
+        return f"particles[{index}]"
 
     @property
     def mass(self) -> np.ndarray:
@@ -797,8 +805,6 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None, w
         # cost steps and place the first touch only to within a step. Touching at
         # t = 0 it is velocity Verlet, bit for bit.
         scene.integrator = "analytic_flight" if scene.one_sphere_among_planes else "velocity_verlet"
-    from minidem.scene import derived
-
     derived.check_scene(scene)  # masses, inertias, energies: what the values imply
     with while_checking(scene) if while_checking is not None else contextlib.nullcontext():
         _check_geometry(scene)
@@ -1158,18 +1164,6 @@ def _tangent(normal: np.ndarray, given, errors: _Errors):
     raise AssertionError("no tangent for a unit normal")
 
 
-def _particle_name(scene: Scene, index: int) -> str:
-    """The scenario table a particle came from (the [impact] sphere is particle 0);
-    ``index`` is where the scene stores it (Scene.reordered)."""
-    index = scene.scenario_index(index)
-    for k, (first, stop) in enumerate(scene.fill_ranges):
-        if first <= index < stop:
-            return f"fill[{k}] (particle {index}, sphere {index - first} of the fill)"
-    if scene.impact is not None:
-        return "impact" if index == 0 else f"particles[{index - 1}]"
-    return f"particles[{index}]"
-
-
 # Initial overlaps below this fraction of the radius are round-off of "touching".
 _TOUCH_TOLERANCE = 1e-9
 
@@ -1204,7 +1198,7 @@ def _check_geometry(scene: Scene, max_reported: int = 5) -> None:
                                   f"overlaps {wall} by {overlap:.3g} m at t = 0; move it at least that far away "
                                   "from the wall"))
     for i, message in wall_findings[:max_reported]:
-        errors.add(_particle_name(scene, i), message)
+        errors.add(scene.particle_name(i), message)
     if len(wall_findings) > max_reported:
         errors.add("", f"... and {len(wall_findings) - max_reported} more particle-wall overlaps")
     if scene.n_particles > 1:
@@ -1217,7 +1211,7 @@ def _check_geometry(scene: Scene, max_reported: int = 5) -> None:
         overlapping = np.flatnonzero(gap < -_TOUCH_TOLERANCE * np.minimum(scene.radius[first], scene.radius[neighbours]))
         for k in overlapping[:max_reported]:
             i, j = sorted((int(first[k]), int(neighbours[k])))
-            errors.add(_particle_name(scene, i), f"overlaps {_particle_name(scene, j)} by {-gap[k]:.3g} m at "
+            errors.add(scene.particle_name(i), f"overlaps {scene.particle_name(j)} by {-gap[k]:.3g} m at "
                        "t = 0; place the spheres at least the sum of their radii apart")
         if len(overlapping) > max_reported:
             errors.add("", f"... and {len(overlapping) - max_reported} more overlapping pairs")

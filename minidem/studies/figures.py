@@ -30,15 +30,11 @@ MARKERS = "os^vDx+*<>ph"
 
 def _series_of(sweep, rows):
     """[(label, [rows])] in first-seen order of the non-angle swept values."""
-    from minidem.studies.sweep import series_of_case
-
-    keys = sweep.series_keys
-    positions = [sweep.keys.index(k) for k in keys]
     groups = {s: [] for s in sweep.series()}
     for row, case in zip(rows, sweep.cases):
         if not row.get("error"):
-            groups[series_of_case(case, positions)].append(row)
-    labels = sweep.series_labels or [", ".join(_value_label(k, v) for k, v in zip(keys, s)) or "run"
+            groups[sweep.series_of(case)].append(row)
+    labels = sweep.series_labels or [", ".join(_value_label(k, v) for k, v in zip(sweep.series_keys, s)) or "run"
                                      for s in groups]
     return list(zip(labels, groups.values()))
 

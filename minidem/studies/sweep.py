@@ -91,11 +91,16 @@ class SweepPlan:
 
     def series(self) -> list[tuple]:
         """Distinct values of the series keys, in first-seen order."""
-        positions = [self.keys.index(k) for k in self.series_keys]
         seen: dict[tuple, None] = {}
         for case in self.cases:
-            seen.setdefault(series_of_case(case, positions), None)
+            seen.setdefault(self.series_of(case), None)
         return list(seen)
+
+    def series_of(self, case: tuple) -> tuple:
+        """The series a case belongs to: its values of the series keys (a swept table,
+        which is not hashable, as its TOML text)."""
+        return tuple(_toml_value(case[p]) if isinstance(case[p], (dict, list)) else case[p]
+                     for p in (self.keys.index(k) for k in self.series_keys))
 
     @property
     def friction(self) -> float:
@@ -231,12 +236,6 @@ def _axes(keys, columns, together, abscissa, errors) -> tuple[list, tuple]:
         axes.append((list(group), [columns[keys.index(k)] for k in group]))
         placed.update(group)
     return axes, tuple(grouped)
-
-
-def series_of_case(case: tuple, positions: list[int]) -> tuple:
-    """The series a case belongs to: its values of the series keys (a swept table, which
-    is not hashable, as its TOML text)."""
-    return tuple(_toml_value(case[p]) if isinstance(case[p], (dict, list)) else case[p] for p in positions)
 
 
 # ---------------------------------------------------------------------------------
