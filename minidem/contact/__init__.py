@@ -4,8 +4,8 @@ A plugin registers **laws** (a contact model in one piece), **parts** (one piece
 model: normal, damping, tangential, rolling, twisting, combined in the scenario file)
 and **presets** (named combinations of parts) through one hook,
 ``minidem_register_laws(registry)``; the hook and its documentation are in
-``minidem/contact/hookspecs.py``, the declarations and the registry in
-``minidem/contact/laws.py``, the generated force of a combination in
+``minidem/contact/hookspecs.py``, the declarations in ``minidem/contact/declarations.py``,
+the registry in ``minidem/contact/laws.py``, the generated force of a combination in
 ``minidem/contact/compose.py``, minidem's own laws and parts in
 ``minidem/contact/builtin_laws/`` (registered through the same entry point as any
 plugin's). The guide is docs/writing-a-contact-law.md::
@@ -24,7 +24,7 @@ plugin's). The guide is docs/writing-a-contact-law.md::
 """
 
 from minidem.contact.hookspecs import hookimpl
-from minidem.contact.laws import (
+from minidem.contact.declarations import (
     COUPLE_ARGUMENTS,
     ENERGY_ROLES,
     FORCE_ARGUMENTS,
@@ -38,8 +38,8 @@ from minidem.contact.laws import (
     Parameter,
     Preset,
     hertz_contact_time,
-    load_registry,
 )
+from minidem.contact.laws import load_registry
 
 __all__ = [
     "COUPLE_ARGUMENTS", "ENERGY_ROLES", "FORCE_ARGUMENTS", "KINDS", "PART_ARGUMENTS", "ContactLaw", "ContactPair",

@@ -1,18 +1,18 @@
 """A contact law composed of parts: the combination's checks, its generated force
 function and the ``ContactLaw`` the engine runs.
 
-The engine knows one kind of law (``minidem.contact.laws.ContactLaw``: a constants row, a
+The engine knows one kind of law (``minidem.contact.declarations.ContactLaw``: a constants row, a
 history row, one compiled force function). A combination of parts becomes exactly
 that, so everything downstream (the kernel, its cache, the time step, checkpoints,
 ``minidem verify``) is the same code for a preset law and for a combination:
 
-* constants: the parts' rows side by side, in the order of ``laws.KINDS``; each part
+* constants: the parts' rows side by side, in the order of ``declarations.KINDS``; each part
   reads its own row from index 0 (a slice);
 * history: likewise, each part its own slice (vector slots keep their meaning: the
   engine rotates them by their offset in the whole row);
 * force: a small module generated into the kernel cache that imports the parts'
   functions and calls them in the order of KINDS, passing on what the next part reads
-  (``laws.PART_ARGUMENTS``). numba inlines it, with its parts, into the kernel (its IR,
+  (``declarations.PART_ARGUMENTS``). numba inlines it, with its parts, into the kernel (its IR,
   ``inline="always"``): compiled on its own and linked, as a preset law's force is,
   it stayed a call, which LLVM does not inline at its size, and the kernel's loop over
   a tile of pair contacts could not be vector code (settle scene, hm+epsd+sds_twisting:
@@ -37,12 +37,12 @@ from typing import Mapping
 
 import numba
 
-from minidem.contact import laws
+from minidem.contact import declarations
 
 _GENERATOR_VERSION = "4"  # bump when the generated source below changes shape
 
 
-def check_combination(parts: tuple[laws.ContactPart, ...]) -> None:
+def check_combination(parts: tuple[declarations.ContactPart, ...]) -> None:
     """Refuse a combination the parts' declarations do not allow (LawError, one message
     naming every problem): no normal part, a trait a part requires that no other part
     provides, one parameter name declared differently by two parts."""
@@ -59,7 +59,7 @@ def check_combination(parts: tuple[laws.ContactPart, ...]) -> None:
                 normal = next((p for p in parts if p.kind == "normal"), None)
                 offers = f" ('{normal.name}' provides {', '.join(normal.provides) or 'nothing'})" if normal else ""
                 problems.append(f"{part.kind} part '{part.name}' requires a '{trait}' part{offers}")
-    declared: dict[str, tuple[laws.Parameter, str]] = {}
+    declared: dict[str, tuple[declarations.Parameter, str]] = {}
     for part in parts:
         for parameter in part.parameters:
             other = declared.get(parameter.name)
@@ -68,11 +68,11 @@ def check_combination(parts: tuple[laws.ContactPart, ...]) -> None:
                                 "with different meanings")
             declared.setdefault(parameter.name, (parameter, part.name))
     if problems:
-        raise laws.LawError("invalid combination " + "+".join(p.name for p in parts) + ": " + "; ".join(problems))
+        raise declarations.LawError("invalid combination " + "+".join(p.name for p in parts) + ": " + "; ".join(problems))
 
 
-def compose(parts: tuple[laws.ContactPart, ...], origins, defaults: Mapping[str, float],
-            preset: str | None = None) -> laws.ContactLaw:
+def compose(parts: tuple[declarations.ContactPart, ...], origins, defaults: Mapping[str, float],
+            preset: str | None = None) -> declarations.ContactLaw:
     """The ContactLaw of a checked combination (see the module docstring). ``defaults``
     replace the parts' parameter defaults (a preset's values)."""
     name = preset or "+".join(p.name for p in parts)
@@ -80,11 +80,11 @@ def compose(parts: tuple[laws.ContactPart, ...], origins, defaults: Mapping[str,
                   for p in _merged_parameters(parts)]
     unknown = sorted(set(defaults) - {p.name for p in parameters})
     if unknown:
-        raise laws.LawError(f"preset '{name}': parameters {unknown} belong to none of its parts")
+        raise declarations.LawError(f"preset '{name}': parameters {unknown} belong to none of its parts")
     by_kind = {p.kind: p for p in parts}
     normal, damping, tangential = by_kind["normal"], by_kind.get("damping"), by_kind.get("tangential")
 
-    def own(named: Mapping[str, float], part: laws.ContactPart) -> dict[str, float]:
+    def own(named: Mapping[str, float], part: declarations.ContactPart) -> dict[str, float]:
         return {c: named[f"{part.kind}.{c}"] for c in part.constants}
 
     def prepare(pair, params):
@@ -102,7 +102,7 @@ def compose(parts: tuple[laws.ContactPart, ...], origins, defaults: Mapping[str,
                 return default
             return float(part.stiffness(pair, own(named, part), effective_radius, effective_mass, normal_overlap))
 
-        kn_default, kt_default = laws.hertz_mindlin_stiffness(pair, effective_radius, normal_overlap)
+        kn_default, kt_default = declarations.hertz_mindlin_stiffness(pair, effective_radius, normal_overlap)
         return (of(normal, kn_default), of(tangential, kt_default if tangential else 0.0), of(damping, 0.0))
 
     # beyond touch: the combination lives as far as its farthest-reaching part
@@ -134,7 +134,7 @@ def compose(parts: tuple[laws.ContactPart, ...], origins, defaults: Mapping[str,
     )
 
 
-def _merged_parameters(parts, first: tuple[laws.Parameter, ...] = (), first_owner: str = "") -> list[laws.Parameter]:
+def _merged_parameters(parts, first: tuple[declarations.Parameter, ...] = (), first_owner: str = "") -> list[declarations.Parameter]:
     """``first`` (a law's parameters), then each part's, each name once; a name declared
     with different meanings by two of them is refused (LawError naming both)."""
     merged, owners = list(first), {p.name: (p, first_owner) for p in first}
@@ -145,12 +145,12 @@ def _merged_parameters(parts, first: tuple[laws.Parameter, ...] = (), first_owne
                 owners[parameter.name] = (parameter, part.name)
                 merged.append(parameter)
             elif other[0] != parameter:
-                raise laws.LawError(f"parameter '{parameter.name}' is declared by both '{other[1]}' and "
+                raise declarations.LawError(f"parameter '{parameter.name}' is declared by both '{other[1]}' and "
                                     f"'{part.name}' with different meanings")
     return merged
 
 
-def _combined_law(law: laws.ContactLaw | None, parts: tuple[laws.ContactPart, ...], **fields) -> laws.ContactLaw:
+def _combined_law(law: declarations.ContactLaw | None, parts: tuple[declarations.ContactPart, ...], **fields) -> declarations.ContactLaw:
     """The ContactLaw of ``parts`` after ``law`` (the law they extend, or None): the law's
     constants and history slots, then each part's named ``kind.name``; the references of
     both, each once; the other fields as given."""
@@ -158,7 +158,7 @@ def _combined_law(law: laws.ContactLaw | None, parts: tuple[laws.ContactPart, ..
     history = (law.history if law else ()) + tuple(
         dataclasses.replace(slot, name=f"{p.kind}.{slot.name}") for p in parts for slot in p.history)
     references = ([law.reference] if law else []) + [p.reference for p in parts]
-    return laws.ContactLaw(constants=constants, history=history, parts=tuple(parts),
+    return declarations.ContactLaw(constants=constants, history=history, parts=tuple(parts),
                            reference="; ".join(dict.fromkeys(r for r in references if r)), **fields)
 
 
@@ -169,16 +169,16 @@ def _prepare_parts(parts, pair, params, prepared: dict, out: dict) -> None:
         values = {p.name: params.get(p.name) for p in part.parameters}
         produced = part.prepare(pair, values, dict(prepared))
         if not isinstance(produced, Mapping):
-            raise laws.LawError(f"part '{part.name}': prepare() must return a dict of constants, "
+            raise declarations.LawError(f"part '{part.name}': prepare() must return a dict of constants, "
                                 f"got {type(produced).__name__}")
         missing = [c for c in part.constants if c not in produced]
         if missing:
-            raise laws.LawError(f"part '{part.name}': prepare() did not return constants {missing}")
+            raise declarations.LawError(f"part '{part.name}': prepare() did not return constants {missing}")
         prepared[part.kind] = {c: float(produced[c]) for c in part.constants}
         out.update({f"{part.kind}.{c}": v for c, v in prepared[part.kind].items()})
 
 
-def _generated_force(parts: tuple[laws.ContactPart, ...]) -> dict:
+def _generated_force(parts: tuple[declarations.ContactPart, ...]) -> dict:
     """Write (once) and import the module holding the combination's force function: its
     ContactLaw fields ``force`` and ``force_alone``."""
     lines, imports = [], []
@@ -207,10 +207,10 @@ def _generated_force(parts: tuple[laws.ContactPart, ...]) -> dict:
     else:
         lines.append("    normal_force = elastic")
     # the load of the friction limits: the total normal force, or the normal part's own
-    # (an adhesive contact's, laws.ContactPart.friction_load)
+    # (an adhesive contact's, declarations.ContactPart.friction_load)
     load = "normal_force"
     if normal.friction_load is not None:
-        module, attribute = laws.import_name(normal.friction_load, "friction_load")
+        module, attribute = declarations.import_name(normal.friction_load, "friction_load")
         imports.append(f"from {module} import {attribute} as normal_friction_load")
         lines.append(f"    friction_load = normal_friction_load({call['normal'][0]}, effective_radius, elastic, "
                      "normal_force)")
@@ -233,7 +233,7 @@ def _part_calls(parts, imports: list, constant_at: int, history_at: int) -> dict
     side by side from the given offsets; appends each part's import to ``imports``."""
     call = {}
     for part in parts:
-        module, attribute = laws.import_name(part.function, "function")
+        module, attribute = declarations.import_name(part.function, "function")
         imports.append(f"from {module} import {attribute} as {part.kind}_part")
         c_end, h_end = constant_at + len(part.constants), history_at + part.history_size
         call[part.kind] = (f"constants[{constant_at}:{c_end}]", f"history[{history_at}:{h_end}]")
@@ -267,7 +267,7 @@ def _load_force(names: list[str], functions: list, imports: list, lines: list, c
     from minidem.codecache import cache_directory, force_dependencies
 
     combination = "+".join(names)
-    arguments = laws.FORCE_ARGUMENTS + (laws.COUPLE_ARGUMENTS if couples else ())
+    arguments = declarations.FORCE_ARGUMENTS + (declarations.COUPLE_ARGUMENTS if couples else ())
     source = (f'"""Generated by minidem.contact.compose: the force of the combination {combination}. Do not edit."""\n\n'
               "import numba\n\n" + "\n".join(imports) + "\n\n\n"
               "@numba.njit(cache=True, inline=\"always\")\n"
@@ -298,8 +298,8 @@ def _load_force(names: list[str], functions: list, imports: list, lines: list, c
 
 
 
-def compose_with_law(law: laws.ContactLaw, normal: laws.ContactPart,
-                     parts: tuple[laws.ContactPart, ...]) -> laws.ContactLaw:
+def compose_with_law(law: declarations.ContactLaw, normal: declarations.ContactPart,
+                     parts: tuple[declarations.ContactPart, ...]) -> declarations.ContactLaw:
     """A law (one part covering normal, damping and tangential: the paper's laws) with
     rolling and/or twisting ``parts``. The law's force runs unchanged on its own
     constants and history; ``normal`` (the law's ``normal_part``, reading the law's
@@ -308,7 +308,7 @@ def compose_with_law(law: laws.ContactLaw, normal: laws.ContactPart,
     parts' (``kind.name``)."""
     leading = law.constants[:len(normal.constants)]
     if leading != normal.constants or normal.history:
-        raise laws.LawError(f"law '{law.name}': its normal_part '{normal.name}' must have no history and constants "
+        raise declarations.LawError(f"law '{law.name}': its normal_part '{normal.name}' must have no history and constants "
                             f"{list(normal.constants)} that are the law's first ones (the law's: {list(leading)})")
     parameters = _merged_parameters(parts, law.parameters, law.name)
 
@@ -325,9 +325,9 @@ def compose_with_law(law: laws.ContactLaw, normal: laws.ContactPart,
     stiffness = None if law.stiffness is None else (
         lambda pair, named, radius, mass, overlap: law.stiffness(pair, own(named), radius, mass, overlap))
 
-    module, attribute = laws.force_import_name(law)
+    module, attribute = declarations.force_import_name(law)
     imports = [f"from {module} import {attribute} as law_force"]
-    normal_module, normal_attribute = laws.import_name(normal.function, "function")
+    normal_module, normal_attribute = declarations.import_name(normal.function, "function")
     imports.append(f"from {normal_module} import {normal_attribute} as normal_part")
     call = _part_calls(parts, imports, len(law.constants), law.history_size)
     lines = [f"    normal_force, ftx, fty, ftz = law_force(\n        constants[0:{len(law.constants)}], "

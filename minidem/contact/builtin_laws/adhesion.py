@@ -35,7 +35,7 @@ import math
 import numba
 
 from minidem.contact.builtin_laws.parts import HERTZ, hertz_normal
-from minidem.contact.laws import ContactPart, HistorySlot, Parameter
+from minidem.contact.declarations import ContactPart, HistorySlot, Parameter
 
 SURFACE_ENERGY = Parameter(
     "surface_energy", None, "J/m^2", "work of adhesion gamma per unit contact area (JKR pull-off "

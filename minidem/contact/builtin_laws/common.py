@@ -4,7 +4,7 @@ import math
 
 import numba
 
-from minidem.contact.laws import Parameter
+from minidem.contact.declarations import Parameter
 
 FRICTION = Parameter(
     "friction", None, "-", "Coulomb friction coefficient mu", low=0.0, required=True

@@ -25,7 +25,7 @@ from minidem.contact.builtin_laws.common import (
     incremental_spring,
     norm3,
 )
-from minidem.contact.laws import ContactLaw, HistorySlot, Parameter
+from minidem.contact.declarations import ContactLaw, HistorySlot, Parameter
 
 # indices into the constants row (the order of HERTZ_CONSTANTS)
 HERTZ_MODULUS, SHEAR_MODULUS, MU, DAMPING, KAPPA, REVERSAL_CHECK, SPECIAL_CASE, PARTIAL_SLIP_REVERSAL_CHECK = range(8)

@@ -11,7 +11,7 @@ from minidem.contact.builtin_laws.common import (
     incremental_spring,
     linear_damping_ratio,
 )
-from minidem.contact.laws import ContactLaw, HistorySlot, Parameter, hertz_contact_time
+from minidem.contact.declarations import ContactLaw, HistorySlot, Parameter, hertz_contact_time
 
 # indices into the constants row (order of LS.constants)
 KN, KT, MU, ZETA = 0, 1, 2, 3

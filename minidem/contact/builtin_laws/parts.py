@@ -32,7 +32,7 @@ from minidem.contact.builtin_laws.linear import (
     TANGENTIAL_STIFFNESS,
     linear_normal_stiffness,
 )
-from minidem.contact.laws import ContactPart, HistorySlot, hertz_contact_time
+from minidem.contact.declarations import ContactPart, HistorySlot, hertz_contact_time
 
 PAPER = "Thornton, Cummins & Cleary (2011)"
 

@@ -12,7 +12,7 @@ import numba
 
 from minidem.contact.builtin_laws.common import FRICTION, coulomb_cap, norm3
 from minidem.contact.builtin_laws.parts import prepare_shear_and_friction
-from minidem.contact.laws import ContactPart, HistorySlot, Parameter
+from minidem.contact.declarations import ContactPart, HistorySlot, Parameter
 
 AI = "Ai, Chen, Rotter & Ooi (2011), Powder Technol. 206, 269-282"
 ROLLING_FRICTION = Parameter("rolling_friction", None, "-", "coefficient of rolling resistance mu_r: the "
