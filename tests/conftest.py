@@ -4,12 +4,21 @@ from __future__ import annotations
 
 import math
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+# The Ctrl-C tests send SIGINT to this process and to `minidem run` subprocesses. A shell
+# without job control starts a background job (`.ci/run &` in a script) with SIGINT
+# ignored, Python then installs no KeyboardInterrupt handler, the children inherit the
+# ignored signal, and those tests fail though minidem is right. Python's own handler here:
+# the children then start with the default disposition, as from a terminal.
+if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 REPO = Path(__file__).resolve().parents[1]
 OBLIQUE = REPO / "scenarios" / "oblique.toml"

@@ -24,7 +24,7 @@ import pytest
 
 import minidem
 from conftest import OBLIQUE, run_cli
-from minidem.contact import laws
+from minidem.contact import declarations, laws
 from minidem.results import analysis
 from minidem.scene import scenario
 from minidem.engine import simulation
@@ -291,7 +291,7 @@ def test_a_plugin_alias_never_takes_a_builtin_name_and_aliases_are_checked(fake_
         registry.get("fake_thief")  # an alias of the refused law finds it, not a did-you-mean
     assert "'aliases' must be a tuple of names" in broken["fake_string_alias"].reason
     # a compiled function bound under another name is imported by that name
-    assert laws.force_import_name(registry.get("fake_bound")) == ("fake_names", "bound_force")
+    assert declarations.force_import_name(registry.get("fake_bound")) == ("fake_names", "bound_force")
     assert "takes 4 arguments" in broken["fake_short"].reason and "tangential_velocity" in broken["fake_short"].reason
     assert "'contact_time' must be a function or None, got float" in broken["fake_number_time"].reason
 

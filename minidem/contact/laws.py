@@ -4,8 +4,8 @@ registered (a broken plugin is reported by name and never takes the others down)
 the combinations of parts composed on demand (``minidem.contact.compose``).
 
 The declarations themselves (:class:`ContactLaw`, :class:`ContactPart`,
-:class:`Parameter`, ...) are in ``minidem.contact.declarations`` and are imported here
-too, so ``laws.ContactLaw`` is the same class.
+:class:`Parameter`, ...) are in ``minidem.contact.declarations``; plugins import them
+through ``minidem.contact``.
 """
 
 from __future__ import annotations
@@ -24,10 +24,8 @@ from typing import Mapping
 import pluggy
 
 from minidem.contact import hookspecs
-from minidem.contact.declarations import (  # noqa: F401  (re-exported: laws.ContactLaw and the like)
-    COUPLE_ARGUMENTS,
+from minidem.contact.declarations import (
     ENERGY_ROLES,
-    FORCE_ARGUMENTS,
     FRICTION_LOAD_ARGUMENTS,
     KINDS,
     PART_ARGUMENTS,
@@ -38,8 +36,6 @@ from minidem.contact.declarations import (  # noqa: F401  (re-exported: laws.Con
     LawError,
     Parameter,
     Preset,
-    called_force,
-    force_import_name,
     hertz_contact_time,
     hertz_mindlin_stiffness,
     import_name,

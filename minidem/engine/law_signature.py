@@ -10,7 +10,7 @@ import os
 
 import numba
 
-from minidem.contact import history as contact_history, laws
+from minidem.contact import declarations, history as contact_history
 
 def _numba_cause(exc: Exception) -> str:
     """The informative lines of a numba error (it buries the cause among 'During:' lines):
@@ -28,17 +28,17 @@ _ROW, _FLOAT, _VECTOR = (numba.types.Array(numba.types.float64, 1, "C"), numba.t
                          numba.types.UniTuple(numba.types.float64, 3))
 # a contact's history as the kernel hands it over (minidem.contact.history)
 _HISTORY = contact_history.contact_history
-# the argument types the kernel passes a law's force function (minidem.contact.laws.FORCE_ARGUMENTS)
+# the argument types the kernel passes a law's force function (minidem.contact.declarations.FORCE_ARGUMENTS)
 _FORCE_SIGNATURE = (_ROW, *(_FLOAT,) * 5, _VECTOR, _VECTOR, _HISTORY)
 # a law with a couple (law.couples) also takes the relative spin, the normal and dt
 _COUPLE_FORCE_SIGNATURE = (*_FORCE_SIGNATURE, _VECTOR, _VECTOR, _FLOAT)
 
 
-def force_signature(law: laws.ContactLaw) -> tuple:
+def force_signature(law: declarations.ContactLaw) -> tuple:
     """The argument types the kernel passes the law's force function."""
     return _COUPLE_FORCE_SIGNATURE if law.couples else _FORCE_SIGNATURE
 
-# the argument types a part's function is called with (minidem.contact.laws.PART_ARGUMENTS)
+# the argument types a part's function is called with (minidem.contact.declarations.PART_ARGUMENTS)
 # and how many numbers it returns (0: one number)
 _PART_SIGNATURES = {
     "normal": ((_ROW, *(_FLOAT,) * 4, _HISTORY), 3),
@@ -73,7 +73,7 @@ def _compiled_alone(function, signature, count: int, what: str, shape: str) -> s
     return None
 
 
-def force_problem(law: laws.ContactLaw, exc: Exception) -> str:
+def force_problem(law: declarations.ContactLaw, exc: Exception) -> str:
     """Why a law's force function broke the kernel's compilation: compiled alone with the
     engine's argument types (each part of a combination with its kind's), so the message
     names the law's or the part's function and file (and a wrong return value), not the

@@ -17,7 +17,7 @@ import numba
 import numpy as np
 
 from minidem import __version__, codecache
-from minidem.contact import laws
+from minidem.contact import declarations, laws
 from minidem.engine import blocks, integrate, kernel, warmup
 from minidem.engine.law_signature import force_problem
 from minidem.engine.notices import notice_if_slow
@@ -312,7 +312,7 @@ class RunLoop:
             # loaded from the cache when a helper compiled it; compiled here (and announced
             # after 2 s) when none did, or it failed
             with compiling():
-                with helper.law_compiled(laws.called_force(sim.law)):
+                with helper.law_compiled(declarations.called_force(sim.law)):
                     self.compile_kernel()
                 helper.wait()
                 if self.resume_from is None and (sim.pairs or meshes):

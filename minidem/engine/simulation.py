@@ -24,7 +24,7 @@ import numba
 import numpy as np
 
 from minidem import __version__, codecache
-from minidem.contact import history as contact_history, laws
+from minidem.contact import declarations, history as contact_history, laws
 from minidem.engine import compile_speed, integrate, kernel
 from minidem.engine.notices import notice_if_slow
 from minidem.engine.run_loop import RunLoop, RunResult
@@ -115,7 +115,7 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
     # column of the constants row); without one the kernel is the same code as before
     flags["REACH"] = law.reach is not None
     flags["OPENING_KICK"] = integrate.OPENING_KICK[integrator]
-    force_module, force_name = laws.force_import_name(law)
+    force_module, force_name = declarations.force_import_name(law)
     law_hash, law_dispatchers = codecache.force_dependencies(law.force)
     key = hashlib.sha256(
         f"{_engine_hash()}|{law_hash}|{entry.distribution}|{entry.version}|{force_module}."
@@ -132,7 +132,7 @@ def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, c
     block = (f"{_BLOCK_START} (law '{law.name}' from {entry.distribution} {entry.version})\n"
              f"from {force_module} import {force_name} as law_force  # noqa: E402\n"
              + ("from {} import {} as law_force_alone  # noqa: E402\n\n".format(
-                 *laws.import_name(law.force_alone, "force_alone"))
+                 *declarations.import_name(law.force_alone, "force_alone"))
                 if law.force_alone is not None else "law_force_alone = law_force\n\n")
              + "".join(f"{name} = {value}\n" for name, value in flags.items())
              # the law's vector history slots, as a compile-time constant the kernel unrolls

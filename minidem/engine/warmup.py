@@ -35,7 +35,7 @@ A preset law's force function is compiled on its own and linked into the kernel,
 helper compiles it first (oblique: the hmd law, ~1.2 s) and the kernel's typing waits
 for it (:meth:`Helper.law_compiled`); a combination's is inlined into the kernel's tile
 of pair contacts and compiled with it, and its copy for walls (``force_alone``) is the
-one the helper compiles first (``minidem.contact.laws.called_force``). On a fresh
+one the helper compiles first (``minidem.contact.declarations.called_force``). On a fresh
 install ``minidem run`` starts the helper before it imports numba and the engine
 (:func:`prestart`): the helper imports them while the run does (``helper.serve``), and is
 handed its job (either of the two above) once the run has read the
@@ -302,11 +302,11 @@ def start(pairs: bool, meshes: bool, law=None) -> Helper:
     if not _second_cpu():
         dismiss()
         return Helper(None)
-    from minidem.contact import laws
+    from minidem.contact import declarations
 
     # the force the kernel calls at a wall (a preset law's, or a combination's force_alone;
     # a force numba inlines is compiled with the kernel: nothing to compile beside it)
-    called = None if law is None else laws.called_force(law)
+    called = None if law is None else declarations.called_force(law)
     law_first = called is not None and not _cached(called)
     shared = not all(_cached(dispatcher) for dispatcher in _dispatchers(pairs, meshes).values())
     if not law_first and not shared:
@@ -370,15 +370,15 @@ def kernel_beside_check(scene, notify=None):
 
 def compile_called_force(law_name: str, combination_only: bool = False) -> None:
     """Compile (into numba's cache) the force function the kernel of law ``law_name`` calls
-    at a wall (``laws.called_force``), for the types the kernel passes it; with
+    at a wall (``declarations.called_force``), for the types the kernel passes it; with
     ``combination_only``, only a combination's ``force_alone``. Whatever fails here the
     kernel compiles, and reports, itself."""
     try:
-        from minidem.contact import laws
+        from minidem.contact import declarations, laws
         from minidem.engine.law_signature import force_signature
 
         law = laws.registry().entry(law_name).law
-        called = laws.called_force(law)
+        called = declarations.called_force(law)
         if called is not None and not (combination_only and law.force_alone is None) and not _cached(called):
             called.compile(force_signature(law))
     except Exception:
