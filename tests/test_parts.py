@@ -454,7 +454,10 @@ def test_twisting_stops_a_spinning_sphere_in_the_analytic_time(tmp_path, twistin
     # (m g / K)^(2/3), Fn = m g at rest); SDS's mu_tw Fn (LAMMPS' twisting sds, mu_tw a
     # length; here 5e-5 m, its spring k_tw = 0.1 N m/rad reaching the cap within 0.05 ms). The
     # landing (bounces end after ~20 ms at e = 0.5) delays the decay, so the clock starts
-    # at t1 = 25 ms: w must reach 0 at t1 + w(t1) I / M, within 1 %.
+    # at t1 = 25 ms: w must reach 0 at t1 + w(t1) I / M. Checked at 0.99 of the way, where
+    # w is 1 % of w(t1): within 1 % of that (the stop time to 1e-4 of the decay; measured
+    # 2e-4 of w there). After the stop both springs give back the twist stored at the
+    # cap (an undamped torsional oscillation), so the spin is not checked past it.
     mu, w0, t1 = 0.5, 1.0, 0.025
     if twisting == "marshall":
         effective_modulus = 1e8 / (2.0 * (1.0 - 0.3**2))
@@ -467,8 +470,8 @@ def test_twisting_stops_a_spinning_sphere_in_the_analytic_time(tmp_path, twistin
     inertia = 0.4 * MASS * RADIUS**2
     spin_at_t1 = rolling_run(tmp_path, contact, spin=(0.0, 0.0, w0), end_time=t1).angular_velocity[0, 2]
     stop = t1 + spin_at_t1 * inertia / moment
-    assert rolling_run(tmp_path, contact, spin=(0.0, 0.0, w0), end_time=0.99 * stop).angular_velocity[0, 2] \
-        == pytest.approx(0.01 * (stop - t1) * moment / inertia, rel=0.01, abs=0.01 * w0)
+    spin = rolling_run(tmp_path, contact, spin=(0.0, 0.0, w0), end_time=t1 + 0.99 * (stop - t1)).angular_velocity
+    assert spin[0, 2] == pytest.approx(0.01 * (stop - t1) * moment / inertia, rel=0.01)
 
 
 def test_couples_conserve_angular_momentum_between_two_spheres(tmp_path):
