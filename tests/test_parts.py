@@ -361,10 +361,7 @@ friction = 0.5
 restitution = 0.5
 {contact}
 
-[[walls]]
-point = [0.0, 0.0, 0.0]
-normal = [0.0, 0.0, 1.0]
-material = "m"
+{floor}
 
 [[particles]]
 position = [0.0, 0.0, 0.01]
@@ -383,13 +380,39 @@ MASS = 4.0 / 3.0 * np.pi * RADIUS**3 * DENSITY
 HM_PARTS = 'normal = "hertz"\ndamping = "tsuji"\ntangential = "mindlin"'
 
 
+PLANE_FLOOR = '''[[walls]]
+point = [0.0, 0.0, 0.0]
+normal = [0.0, 0.0, 1.0]
+material = "m"'''
+MESH_FLOOR = '''[[walls]]
+type = "mesh"
+file = "floor.obj"
+material = "m"'''
+
+
+def write_floor_mesh(directory, half=0.05, cells=8):
+    """The plane z = 0 over [-half, half]^2 as a triangle mesh of cells x cells squares
+    (each two triangles), in OBJ: a sphere rolling on it crosses edges and vertices."""
+    ticks = np.linspace(-half, half, cells + 1)
+    lines = [f"v {float(x)!r} {float(y)!r} 0.0" for x in ticks for y in ticks]
+    for i in range(cells):
+        for j in range(cells):
+            a, b, c, d = (1 + i * (cells + 1) + j, 1 + (i + 1) * (cells + 1) + j,
+                          1 + (i + 1) * (cells + 1) + j + 1, 1 + i * (cells + 1) + j + 1)
+            lines += [f"f {a} {b} {c}", f"f {a} {c} {d}"]
+    (directory / "floor.obj").write_text("\n".join(lines) + "\n")
+
+
 def rolling_run(tmp_path, contact, velocity=(0.0, 0.0, 0.0), spin=(0.0, 0.0, 0.0), end_time=0.1, slope_deg=0.0,
-                law=HM_PARTS):
+                law=HM_PARTS, floor="plane"):
     slope = np.radians(slope_deg)  # an incline: gravity tilted about y, down the slope along +x
     gravity = [float(GRAVITY * np.sin(slope)), 0.0, float(-GRAVITY * np.cos(slope))]
     path = tmp_path / f"scene{len(list(tmp_path.iterdir()))}.toml"
+    if floor == "mesh":
+        write_floor_mesh(tmp_path)
     path.write_text(ROLLING_SCENE.format(law=law, contact=contact, velocity=[float(v) for v in velocity],
-                                         spin=[float(w) for w in spin], end_time=float(end_time), gravity=gravity))
+                                         spin=[float(w) for w in spin], end_time=float(end_time), gravity=gravity,
+                                         floor=PLANE_FLOOR if floor == "plane" else MESH_FLOOR))
     return simulation.Simulation(scenario.load_scene(path, [])).run()
 
 
@@ -401,16 +424,19 @@ SDS_ROLLING = 'rolling = "sds_rolling"\nrolling_stiffness = 1000.0\nrolling_visc
     0.3 * 2.0 * np.sqrt(1.4 * MASS * RADIUS**2 * 1000.0 * RADIUS**2) / RADIUS**2)
 
 
+@pytest.mark.parametrize("floor", ["plane", "mesh"])
 @pytest.mark.parametrize("rolling", ['rolling = "constant_torque"', SDS_ROLLING], ids=["constant_torque", "sds"])
-def test_rolling_couple_stops_a_rolling_sphere_at_the_analytic_distance(tmp_path, rolling):
+def test_rolling_couple_stops_a_rolling_sphere_at_the_analytic_distance(tmp_path, rolling, floor):
     # Rolling without slip, v = w R, under the couple mu_r R Fn: (m + I/R^2) dv/dt = -mu_r m g,
     # a = 5/7 mu_r g, so it stops after v0^2 / (2 a) = 7 v0^2 / (10 mu_r g) (Ai et al. 2011,
     # model A). SDS slides at its cap mu_r R* Fn all the way (its spring is stiff), so the
     # same distance holds for it (LAMMPS' rolling sds is Coulomb-capped at mu_roll Fn).
+    # On a floor of triangles the contact crosses edges (every 12.5 mm) and carries its
+    # rolling history to the next triangle: the same distance.
     mu_r, v0 = 0.1, 0.1
     stop_time = v0 / (5.0 / 7.0 * mu_r * GRAVITY)
-    result = rolling_run(tmp_path, f'{rolling}\nrolling_friction = {mu_r}',
-                         velocity=(v0, 0.0, 0.0), spin=(0.0, v0 / RADIUS, 0.0), end_time=1.4 * stop_time)
+    result = rolling_run(tmp_path, f'{rolling}\nrolling_friction = {mu_r}', velocity=(v0, 0.0, 0.0),
+                         spin=(0.0, v0 / RADIUS, 0.0), end_time=1.4 * stop_time, floor=floor)
     distance = 7.0 * v0**2 / (10.0 * mu_r * GRAVITY)
     assert result.position[0, 0] == pytest.approx(distance, rel=0.01)
     assert abs(result.velocity[0, 0]) < 0.01 * v0  # at rest, to the couple's chatter
