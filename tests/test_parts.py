@@ -388,6 +388,16 @@ MESH_FLOOR = '''[[walls]]
 type = "mesh"
 file = "floor.obj"
 material = "m"'''
+# the inside of a horizontal cylinder (axis along x at z = 50 mm, radius 50 mm): its
+# lowest line is z = 0, where the sphere rolls along the axis on the curved surface
+CYLINDER_FLOOR = '''[[walls]]
+type = "cylinder"
+point = [-0.1, 0.0, 0.05]
+axis = [1.0, 0.0, 0.0]
+radius = 0.05
+length = 0.2
+material = "m"'''
+FLOORS = {"plane": PLANE_FLOOR, "mesh": MESH_FLOOR, "cylinder": CYLINDER_FLOOR}
 
 
 def write_floor_mesh(directory, half=0.05, cells=8):
@@ -412,7 +422,7 @@ def rolling_run(tmp_path, contact, velocity=(0.0, 0.0, 0.0), spin=(0.0, 0.0, 0.0
         write_floor_mesh(tmp_path)
     path.write_text(ROLLING_SCENE.format(law=law, contact=contact, velocity=[float(v) for v in velocity],
                                          spin=[float(w) for w in spin], end_time=float(end_time), gravity=gravity,
-                                         floor=PLANE_FLOOR if floor == "plane" else MESH_FLOOR))
+                                         floor=FLOORS[floor]))
     return simulation.Simulation(scenario.load_scene(path, [])).run()
 
 
@@ -424,7 +434,7 @@ SDS_ROLLING = 'rolling = "sds_rolling"\nrolling_stiffness = 1000.0\nrolling_visc
     0.3 * 2.0 * np.sqrt(1.4 * MASS * RADIUS**2 * 1000.0 * RADIUS**2) / RADIUS**2)
 
 
-@pytest.mark.parametrize("floor", ["plane", "mesh"])
+@pytest.mark.parametrize("floor", ["plane", "mesh", "cylinder"])
 @pytest.mark.parametrize("rolling", ['rolling = "constant_torque"', SDS_ROLLING], ids=["constant_torque", "sds"])
 def test_rolling_couple_stops_a_rolling_sphere_at_the_analytic_distance(tmp_path, rolling, floor):
     # Rolling without slip, v = w R, under the couple mu_r R Fn: (m + I/R^2) dv/dt = -mu_r m g,
@@ -432,7 +442,8 @@ def test_rolling_couple_stops_a_rolling_sphere_at_the_analytic_distance(tmp_path
     # model A). SDS slides at its cap mu_r R* Fn all the way (its spring is stiff), so the
     # same distance holds for it (LAMMPS' rolling sds is Coulomb-capped at mu_roll Fn).
     # On a floor of triangles the contact crosses edges (every 12.5 mm) and carries its
-    # rolling history to the next triangle: the same distance.
+    # rolling history to the next triangle; along the lowest line of a cylinder's inside
+    # the couple acts at a curved wall: the same distance on both.
     mu_r, v0 = 0.1, 0.1
     stop_time = v0 / (5.0 / 7.0 * mu_r * GRAVITY)
     result = rolling_run(tmp_path, f'{rolling}\nrolling_friction = {mu_r}', velocity=(v0, 0.0, 0.0),
