@@ -127,8 +127,7 @@ def test_sticking_contact_is_the_analytic_tangential_oscillator():
     # Ft = kt Vt sin(w t) / w, w = sqrt(7 kt / 2m), with kt = 2(1 - nu)/(2 - nu) k1 (the
     # paper's eq 10 ratio, the law's default) until Ft first meets mu Fn. Velocity Verlet's
     # error is O((w dt)^2): bound 20 (w dt)^2 of the peak (measured 2.6e-7 of it against
-    # 2.6e-5); a spin term of the wrong sign
-    # or I = 1/2 m R^2 is off by 0.25 of it or more.
+    # 2.6e-5); a spin term of the wrong sign or I = 1/2 m R^2 is off by 0.25 of it or more.
     data = scene_data(5.0)
     data["output"] = {"trace": True}
     sim = simulation.Simulation(scenario.build_scene(data, "walton_braun_test.toml"))
