@@ -133,6 +133,11 @@ FAKE_PLUGINS = {
         def broken_contact_time(pair, constants, effective_radius, effective_mass, normal_speed):
             return constants["stifness"]  # a typo: KeyError
 
+        def stiffness_of_a_sign_slip(pair, constants, effective_radius, effective_mass, normal_overlap):
+            from minidem.contact.laws import hertz_mindlin_stiffness
+
+            return (*hertz_mindlin_stiffness(pair, effective_radius, -normal_overlap), 0.0)  # sqrt(-d)
+
         @hookimpl
         def minidem_register_laws(registry):
             registry.add(law("fake_alias_thief", aliases=("HM", "fake_thief")))  # 'hm' is built in
@@ -141,6 +146,7 @@ FAKE_PLUGINS = {
             registry.add(law("fake_three_values", force=three_values_force))
             registry.add(law("fake_short", force=short_force))
             registry.add(law("fake_bad_time", contact_time=broken_contact_time))
+            registry.add(law("fake_bad_stiffness", stiffness=stiffness_of_a_sign_slip))
             registry.add(law("fake_negative_time", contact_time=lambda *args: -1.0))
             registry.add(law("fake_number_time", contact_time=1e-4))
             registry.add(law("fake_none_prepare", prepare=lambda pair, params: None))
@@ -351,6 +357,8 @@ def test_unknown_law_names_the_plugins_that_failed_to_load(announced):
     ("fake_three_values", r"three_values_force in .*fake_names\.py, line \d+ must return 4 numbers "
                           r"\(fn, ftx, fty, ftz\), it returns "),
     ("fake_bad_time", r"contact_time\(\) failed: KeyError: 'stifness' \(at .*fake_names\.py:\d+\)"),
+    # raised inside minidem's helper (declarations.py): the place named is the plugin's call
+    ("fake_bad_stiffness", r"stiffness\(\) failed: ValueError: math domain error \(at .*fake_names\.py:\d+\)"),
     ("fake_negative_time", r"contact_time\(\) returned -1\.0; it must be a duration in s"),
     ("fake_none_prepare", r"prepare\(\) must return a dict of constants, got NoneType"),
 ])

@@ -523,7 +523,8 @@ def _one_line(exc: BaseException) -> str:
     frames = traceback.extract_tb(exc.__traceback__) if exc.__traceback__ else []
     own = [f for f in frames if not f.filename.startswith("<frozen")
            and not any(part in f.filename for part in (f"{os.sep}pluggy{os.sep}", f"{os.sep}importlib{os.sep}",
-                                                        f"{os.sep}minidem{os.sep}contact{os.sep}laws.py"))]
+                                                        f"{os.sep}minidem{os.sep}contact{os.sep}laws.py",
+                                                        f"{os.sep}minidem{os.sep}contact{os.sep}declarations.py"))]
     if isinstance(exc, SyntaxError) and exc.filename:
         where = f" (at {exc.filename}:{exc.lineno})"
     elif own:

@@ -46,10 +46,16 @@ def compile_for_run(law_name: str | None, shared: bool, pairs: bool, meshes: boo
     """The helper's side of :func:`minidem.engine.warmup.start`: the law's force function
     for the types the kernel passes it (then "law" on standard output: the run waits for
     that line before it would compile it itself), then the shared functions."""
-    if law_name is not None:
-        try:
+    try:
+        # the engine's set-up, as in the run: numba's compile-speed repairs and the
+        # threading layer's order (minidem.engine.simulation); serve() has imported it,
+        # a helper started with this job named has not
+        from minidem.engine import simulation  # noqa: F401
+
+        if law_name is not None:
             warmup.compile_called_force(law_name)
-        finally:
+    finally:
+        if law_name is not None:
             print("law", flush=True)  # compiled or not: the run must not wait any longer
     if shared:
         warmup.compile_shared(pairs, meshes)

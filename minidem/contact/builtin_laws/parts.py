@@ -1,7 +1,7 @@
 """minidem's built-in contact-model parts (normal, damping, tangential).
 
 Each part is one declaration and one compiled function with the signature of its kind
-(``minidem.contact.laws.PART_ARGUMENTS``). The paper's laws (``hertz.py``, ``linear.py``) are
+(``minidem.contact.declarations.PART_ARGUMENTS``). The paper's laws (``hertz.py``, ``linear.py``) are
 the same physics written as single laws; two combinations reproduce two of them:
 
     hooke + viscous + linear_history   = ls  (bit for bit: the same operations in order)
