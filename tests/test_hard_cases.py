@@ -17,7 +17,6 @@ Only symplectic Euler adds one variant (ls).
 
 import copy
 import math
-import re
 import types
 import warnings
 

@@ -86,8 +86,10 @@ from minidem.geometry.primitives import (
     cylinder_overlap,
     pair_contact_velocity,
     plane_overlap,
-    rotate_slot_into_plane,
+    seen_from,
     triangle_closest_point,
+    turn_slot,
+    turned_increment,
 )
 from minidem.contact.history import history_column, history_row, history_row_of
 from minidem.engine.integrate import block_sum, drift, kick, kick_spin, particle_kinetic_energy, turns
@@ -219,12 +221,13 @@ def finite(fn, ftx, fty, ftz):
 
 
 @numba.njit(cache=True, inline="always")
-def rotate_history(history, nx, ny, nz):
-    """Carry every vector slot of the law's history into the current tangent plane.
-    Unrolled over the law's (compile-time) slot offsets: a loop here would cost two
-    atomic reference-count updates per array argument and contact (see below)."""
+def rotate_history(history, previous_normal, normal):
+    """Turn every vector slot of the law's history with the contact, from the last
+    step's tangent plane into the current one. Unrolled over the law's (compile-time)
+    slot offsets: a loop here would cost two atomic reference-count updates per array
+    argument and contact (see below)."""
     for offset in numba.literal_unroll(VECTOR_OFFSETS):
-        rotate_slot_into_plane(history, offset, nx, ny, nz)
+        turn_slot(history, offset, previous_normal, normal)
 
 
 # Performance rule for everything called per particle or per contact: a helper that takes
@@ -235,12 +238,16 @@ def rotate_history(history, nx, ny, nz):
 # bounced between the cores (ten times slower than one thread). Loops over walls,
 # triangles and neighbours therefore live in force_range itself.
 @numba.njit(cache=True, inline="always")
-def contact_response(law, constants_row, history, overlap, previous, normal, curved, vi, wi, vj, wj, lever_i,
-                     lever_j, effective_radius, effective_mass, dt, stats):
+def contact_response(law, constants_row, history, overlap, previous, normal, previous_normal, curved, vi, wi, vj,
+                     wj, lever_i, lever_j, effective_radius, effective_mass, dt, stats):
     """The one evaluation every contact goes through (sphere-plane, -cylinder,
-    -triangle and -sphere): history into the tangent plane (``curved``: the normal
-    can turn), contact-point velocity and the law. Vectors are 3-tuples; n points from
-    the partner to i.
+    -triangle and -sphere): history turned with the contact, contact-point velocity and
+    the law. Vectors are 3-tuples; n points from the partner to i. ``curved``: the normal
+    can turn (a pair, a cylinder, a triangle mesh), and ``previous_normal`` is then the
+    contact's normal at the last step (the partners' positions one drift back: the
+    velocities here are the drift's) in the form minidem.geometry.primitives describes,
+    with which the history is turned exactly and the step's displacement taken at its
+    middle (``turned_increment``); a plane's (``curved`` False) is not read.
 
     ``law``: the law's force function, ``law_force`` in the tile of pair contacts (a law
     numba inlines is inlined there, where it becomes vector code) and ``law_force_alone``
@@ -260,11 +267,18 @@ def contact_response(law, constants_row, history, overlap, previous, normal, cur
     """
     nx, ny, nz = normal
     if ROTATE_HISTORY and curved:
-        rotate_history(history, nx, ny, nz)
+        rotate_history(history, previous_normal, normal)
     normal_velocity, tangential_velocity = pair_contact_velocity(
         vi[0], vi[1], vi[2], wi[0], wi[1], wi[2], vj[0], vj[1], vj[2], wj[0], wj[1], wj[2], lever_i, lever_j,
         nx, ny, nz)
-    increment = (tangential_velocity[0] * dt, tangential_velocity[1] * dt, tangential_velocity[2] * dt)
+    if curved:
+        spin_lever = ZERO
+        if SPIN:
+            spin_lever = (lever_i * wi[0] + lever_j * wj[0], lever_i * wi[1] + lever_j * wj[1],
+                          lever_i * wi[2] + lever_j * wj[2])
+        increment = turned_increment(tangential_velocity, normal_velocity, previous_normal, normal, spin_lever, dt)
+    else:
+        increment = (tangential_velocity[0] * dt, tangential_velocity[1] * dt, tangential_velocity[2] * dt)
     mx, my, mz = 0.0, 0.0, 0.0
     if COUPLES:
         # rolling and twisting resistance: the law sees the spin of i relative to j and
@@ -302,13 +316,13 @@ def add_contact(acc, lever_i, on_i, direction, couple):
 
 
 @numba.njit(cache=True, inline="always")
-def evaluate_contact(acc, constants_row, history, overlap, previous, normal, curved, vi, wi, vj, wj,
+def evaluate_contact(acc, constants_row, history, overlap, previous, normal, previous_normal, curved, vi, wi, vj, wj,
                      lever_i, lever_j, effective_radius, effective_mass, dt, stats):
     """``contact_response`` added to acc (``add_contact``): a wall contact's evaluation.
     Returns (acc, then contact_response's values)."""
     on_i, direction, couple, fn, ft, increment, ok = contact_response(
-        law_force_alone, constants_row, history, overlap, previous, normal, curved, vi, wi, vj, wj, lever_i,
-        lever_j, effective_radius, effective_mass, dt, stats)
+        law_force_alone, constants_row, history, overlap, previous, normal, previous_normal, curved, vi, wi, vj, wj,
+        lever_i, lever_j, effective_radius, effective_mass, dt, stats)
     return add_contact(acc, lever_i, on_i, direction, couple), on_i, direction, couple, fn, ft, increment, ok
 
 
@@ -365,10 +379,18 @@ def evaluate_pair_tile(count, rows, constants, tile, tile_history, response, dt,
         # a division fewer per contact (divisions and square roots share one unit)
         mass_sum = mi + mj
         shared = 1.0 / (reach * mass_sum)
+        nx, ny, nz = tile[T_DX, k] * inverse, tile[T_DY, k] * inverse, tile[T_DZ, k] * inverse
+        dvx, dvy, dvz = tile[T_DV, k], tile[T_DV + 1, k], tile[T_DV + 2, k]
+        # the last step's line of centres, one drift back (the drift moved i and j by the
+        # velocities here times dt): d - dt dv, over its length along n, distance - dt
+        # (dv . n), so that it is seen from n (primitives); dt dv . n is the step's approach,
+        # a few 1e-4 of the distance: the bound only keeps a wild step finite
+        back = dt * inverse
+        seen = 1.0 / max(1.0 - back * (dvx * nx + dvy * ny + dvz * nz), 0.5)
         on_i, direction, couple, _, _, _, ok = contact_response(
             law_force, constants[rows[k]], history_column(tile_history, k, TILE_CONTACTS), overlap, tile[T_PREVIOUS, k],
-            (tile[T_DX, k] * inverse, tile[T_DY, k] * inverse, tile[T_DZ, k] * inverse), True,
-            (tile[T_DV, k], tile[T_DV + 1, k], tile[T_DV + 2, k]), wi, ZERO, wj,
+            (nx, ny, nz), ((nx - back * dvx) * seen, (ny - back * dvy) * seen, (nz - back * dvz) * seen), True,
+            (dvx, dvy, dvz), wi, ZERO, wj,
             ri - 0.5 * overlap, rj - 0.5 * overlap, ri * rj * mass_sum * shared, mi * mj * reach * shared, dt, stats)
         response[R_ON_I, k], response[R_ON_I + 1, k], response[R_ON_I + 2, k] = on_i
         response[R_DIRECTION, k], response[R_DIRECTION + 1, k], response[R_DIRECTION + 2, k] = direction
@@ -385,6 +407,15 @@ def mesh_contact_geometry(px, py, pz, ri, triangles, t):
     if distance == 0.0:
         return ri, 0.0, 0.0, 1.0, cx, cy, cz, feature
     return ri - distance, dx / distance, dy / distance, dz / distance, cx, cy, cz, feature
+
+
+# not inlined, as mesh_entry_overlap below
+@numba.njit(cache=True)
+def mesh_normal_at(px, py, pz, triangles, t):
+    """The normal of a sphere centred at (px, py, pz) against triangle t (from its
+    closest point to the centre)."""
+    _, nx, ny, nz, _, _, _, _ = mesh_contact_geometry(px, py, pz, 1.0, triangles, t)
+    return nx, ny, nz
 
 
 # not inlined: it is called from four places of the MESHES block of force_range; inlining every copy of the
@@ -625,8 +656,8 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 wi = (angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2])
             acc, _, _, _, fn, ft, increment, ok = evaluate_contact(
                 acc, constants[pair_row[material[i], wall_material[w]]], history_row(wall_history, k), overlap, previous,
-                (wall_normal[w, 0], wall_normal[w, 1], wall_normal[w, 2]), False, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi,
-                dt, stats)
+                (wall_normal[w, 0], wall_normal[w, 1], wall_normal[w, 2]), ZERO, False, vi, wi, ZERO, ZERO, ri, 0.0,
+                ri, mi, dt, stats)
             if not ok:
                 fault(status, NON_FINITE_FORCE, i, w, PLANE)
                 break
@@ -661,9 +692,15 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                     continue
                 if SPIN:
                     wi = (angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2])
+                # the normal at i's position one drift back (a sphere beyond an end of the
+                # cylinder then gets the axis's default normal: the turn falls back to a
+                # projection, normal_turn)
+                _, ax, ay, az = cylinder_overlap(px - dt * vi[0], py - dt * vi[1], pz - dt * vi[2], ri, base, axis,
+                                                 cylinder_radius, length, c)
+                previous_normal = seen_from((ax, ay, az), (nx, ny, nz))
                 acc, _, _, _, _, _, _, ok = evaluate_contact(
                     acc, constants[pair_row[material[i], cylinder_material[c]]], history_row_of(cylinder_history, i, c), overlap, previous,
-                    (nx, ny, nz), True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)
+                    (nx, ny, nz), previous_normal, True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)
                 if not ok:
                     fault(status, NON_FINITE_FORCE, i, c, CYLINDER)
                     break
@@ -697,6 +734,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                     if (previous > 0.0) != (sweep == 0):
                         continue
                     t = mesh_candidates[k]
+                    turned_from = t  # the triangle the contact touched at the last step
                     overlap, nx, ny, nz = mesh_entry_overlap(px, py, pz, ri, triangles, mesh_candidates, start, stop,
                                                              k, touches_face, tolerance)
                     if sweep == 0 and overlap <= 0.0:
@@ -710,6 +748,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                                     tolerance)[0] <= 0.0:
                                 mesh_history[k, :] = mesh_history[e, :]
                                 previous = mesh_overlap[e]
+                                turned_from = mesh_candidates[e]
                                 mesh_overlap[e] = 0.0  # handed over: it ends without a separation
                                 mesh_history[e, :] = 0.0
                                 ending -= 1
@@ -726,7 +765,9 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                         wi = (angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2])
                     acc, _, _, _, _, _, _, ok = evaluate_contact(
                         acc, constants[pair_row[material[i], triangle_material[t]]], history_row(mesh_history, k), overlap, previous,
-                        (nx, ny, nz), True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)
+                        (nx, ny, nz), seen_from(mesh_normal_at(px - dt * vi[0], py - dt * vi[1], pz - dt * vi[2], triangles,
+                                                               turned_from), (nx, ny, nz)),
+                        True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)
                     if not ok:
                         fault(status, NON_FINITE_FORCE, i, t, TRIANGLE)
                         break

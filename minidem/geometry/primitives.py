@@ -31,26 +31,68 @@ def plane_overlap(px, py, pz, radius, wall_point, wall_normal, wall):
     return radius - distance
 
 
-@numba.njit(cache=True, inline="always")
-def rotate_slot_into_plane(history, o, nx, ny, nz):
-    """Carry the vector history slot history[o:o+3] into the current tangent plane as
-    the contact rotates.
+# A turning contact (two spheres, a sphere on a cylinder or on a mesh's edge) hands the
+# functions below its last step's normal a as seen from the current normal b: scaled to
+# a . b = 1, i.e. a / (a . b) (``previous_normal``). In that form the smallest rotation
+# taking a to b, and the half of it the step's displacement needs, are additions and
+# multiplications only: a pair's form comes with one division from quantities its
+# evaluation has anyway, and the tile of pair contacts stays vector code.
 
-    The normal component is removed and the magnitude restored, so a rotating contact
-    neither loses nor gains stored force (the LAMMPS/LIGGGHTS convention; see design
-    notes on LAMMPS #3022).
+
+@numba.njit(cache=True, inline="always")
+def seen_from(unit_normal, normal):
+    """A unit previous normal in the form above; the current normal itself (no turn) for
+    one more than 60 degrees away, which no contact turns in a step (a sphere just
+    beyond a cylinder's end, whose normal is a placeholder there)."""
+    ax, ay, az = unit_normal
+    cosine = ax * normal[0] + ay * normal[1] + az * normal[2]
+    if cosine > 0.5:
+        scale = 1.0 / cosine
+        return ax * scale, ay * scale, az * scale
+    return normal
+
+
+@numba.njit(cache=True, inline="always")
+def turn_slot(history, o, previous_normal, normal):
+    """Turn the vector history slot history[o:o+3] with the contact, from the last
+    step's tangent plane (normal a) into the current one (normal b).
+
+    The smallest rotation taking a to b maps a vector v of a's plane to
+    v - (v . b) (a + b) / (1 + a . b) (Rodrigues' formula with v . a = 0). With a given
+    as a' = a / (a . b) that is v - (v . b) (a' + b) / 2 to within the cube of the
+    step's angle: the slot lands exactly in b's plane and keeps its length and its
+    direction relative to the contact. Projecting onto b's plane and restoring the
+    length (LAMMPS' and LIGGGHTS' convention, design notes on LAMMPS #3022) is off by
+    the square of the angle every step, which made a pair's rebound converge at first
+    order in the time step (docs/time-step.md).
     """
     hx, hy, hz = history[o], history[o + 1], history[o + 2]
-    before = hx * hx + hy * hy + hz * hz
-    # no early return for an empty slot (it stays zero: after = 0, scale 0): without a
-    # branch the compiler hands the rotated values straight to the law, which reads the
-    # slot next, instead of storing and loading them again
-    along = hx * nx + hy * ny + hz * nz
-    hx, hy, hz = hx - along * nx, hy - along * ny, hz - along * nz
-    after = hx * hx + hy * hy + hz * hz
-    # |h_before| / |h_after| with one square root (this runs for every contact, every step)
-    scale = math.sqrt(before / after) if after > 0.0 else 0.0
-    history[o], history[o + 1], history[o + 2] = hx * scale, hy * scale, hz * scale
+    half = 0.5 * (hx * normal[0] + hy * normal[1] + hz * normal[2])
+    history[o] = hx - half * (previous_normal[0] + normal[0])
+    history[o + 1] = hy - half * (previous_normal[1] + normal[1])
+    history[o + 2] = hz - half * (previous_normal[2] + normal[2])
+
+
+@numba.njit(cache=True, inline="always")
+def turned_increment(tangential_velocity, normal_velocity, previous_normal, normal, spin_lever, dt):
+    """The tangential displacement of a turning contact over the step, in the current
+    tangent plane: the contact-point velocity at the middle of the step (where the
+    drift's constant velocities belong), turned with the contact to its end.
+
+    To first order in the step's turn from a to b, that adds to ``tangential_velocity``
+    (taken with b) the normal velocity the half turn tilts into the plane,
+    normal_velocity / 2 (a' - b), and the spin about the normal it tilts,
+    (b . s) (a' x b) / 2 with s = lever_i w_i + lever_j w_j (``spin_lever``; a' as for
+    ``turn_slot``). Without them the increment is off by the step's angle in every step,
+    a first-order error in the time step; with them by its square."""
+    ax, ay, az = previous_normal
+    bx, by, bz = normal
+    half = 0.5 * normal_velocity
+    twist = 0.5 * (bx * spin_lever[0] + by * spin_lever[1] + bz * spin_lever[2])
+    kx, ky, kz = cross(ax, ay, az, bx, by, bz)
+    return ((tangential_velocity[0] + half * (ax - bx) + twist * kx) * dt,
+            (tangential_velocity[1] + half * (ay - by) + twist * ky) * dt,
+            (tangential_velocity[2] + half * (az - bz) + twist * kz) * dt)
 
 
 @numba.njit(cache=True, inline="always")
