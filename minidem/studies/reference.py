@@ -59,6 +59,14 @@ choices" once written, which the engine follows):
 - a reload that climbs back to Ft* returns to the loading branch (at once if eq 23 has
   already taken Ft* below the force); an unload that reaches -Ft* is a full reversal:
   loading in the opposite direction;
+- a dashpot (``Impact.restitution`` < 1, LS and HM): the engine's, derived again: Fn =
+  max(kn delta + 2 zeta sqrt(m kn) u, 0) (LS) or max(K delta^1.5 + alpha sqrt(m K) delta^1/4 u,
+  0) (HM, Tsuji et al. 1992, K = 4/3 E* sqrt(R)), the factor found here for the requested
+  restitution by bisection on this solver's own normal impact (``damping_for``). The Coulomb
+  limit is mu times that force, and the cap's rate Fn' includes the dashpot's. The
+  contact starts sticking (the cap mu Fn grows as t^(1/4), or jumps, faster than any
+  elastic trial) and ends where the force returns to zero, before the overlap has closed
+  (then the sphere flies free: no force acts on it until the overlap is zero);
 - LS kn is the paper's eq 28, kn = 1.2024 (m^1/2 E*^2 R V)^2/5 at the impact speed V
   (y1, y2, et of the linear law do not depend on kn: it only sets the time scale).
 """
@@ -69,6 +77,8 @@ import dataclasses
 import math
 
 LAWS = ("hmd", "hm", "ls", "lth", "hmdns_integral", "hmdns_integral_reset")
+# the laws with a dashpot here (Impact.restitution < 1)
+DAMPED_LAWS = ("hm", "ls")
 
 # The paper's 30-angle sweep (deg): dense where the laws differ (below the ~30 deg onset of
 # sliding throughout), sparse in gross sliding.
@@ -94,6 +104,10 @@ class Impact:
     # HMD only, as the engine's hmd parameter: 1 a reversal in partial slip while Fn falls
     # waits until it is admissible (issue 13), 0 at the velocity reversal
     partial_slip_reversal_check: int = 1
+    # LS and HM only: the normal restitution their dashpot gives (1: none), or the
+    # dashpot's factor itself (damping: zeta for LS, alpha for HM; restitution then ignored)
+    restitution: float = 1.0
+    damping: float | None = None
 
     @property
     def mass(self) -> float:
@@ -197,15 +211,50 @@ class _Law:
             self.shear = 8.0 * g_star  # kt = shear a (eq 29)
             self.kappa = 4.0 * g_star / e_star  # = eq 10
             self.e_star, self.g_star = e_star, g_star
+        # the dashpot's coefficient: Fd = dashpot u (LS), dashpot delta^1/4 u (HM)
+        self.dashpot = 0.0
+        if impact.damping is not None or impact.restitution < 1.0:
+            if self.name not in DAMPED_LAWS:
+                raise ValueError(f"reference: a dashpot is modelled for {', '.join(DAMPED_LAWS)} only, "
+                                 f"not {self.name!r}")
+            factor = impact.damping if impact.damping is not None else damping_for(impact)
+            if self.linear:
+                self.dashpot = 2.0 * factor * math.sqrt(self.m * self.kn)
+            else:
+                self.dashpot = factor * math.sqrt(self.m * self.hertz)
 
     # -- normal contact -----------------------------------------------------------
     def normal(self, delta, u):
-        """Fn and dFn/dt (the force is that of the overlap; zero overlap ends contact)."""
+        """Fn and dFn/dt (the force is that of the overlap; zero overlap ends contact; a
+        dashpot's force is clipped at zero, where the contact ends too)."""
         d = max(delta, 0.0)
         if self.linear:
-            return self.kn * d, self.kn * u
-        root = math.sqrt(d)
-        return self.hertz * d * root, 1.5 * self.hertz * root * u
+            force, rate = self.kn * d, self.kn * u
+        else:
+            root = math.sqrt(d)
+            force, rate = self.hertz * d * root, 1.5 * self.hertz * root * u
+        if not self.dashpot:
+            return force, rate
+        force += self.dashpot_force(d, u)
+        if force <= 0.0:
+            return 0.0, 0.0
+        acceleration = -force / self.m
+        if self.linear:
+            return force, rate + self.dashpot * acceleration
+        quarter = math.sqrt(math.sqrt(d))
+        # d/dt (delta^1/4 u) = delta^1/4 u' + u^2 / (4 delta^3/4): infinite at first touch,
+        # where no event reads it (the contact sticks, and rhs integrates Fn' only in slip)
+        spread = 0.25 * u * u / (quarter * quarter * quarter) if d > 0.0 else 0.0
+        return force, rate + self.dashpot * (quarter * acceleration + spread)
+
+    def dashpot_force(self, delta, u):
+        d = max(delta, 0.0)
+        return self.dashpot * u * (1.0 if self.linear else math.sqrt(math.sqrt(d)))
+
+    def unclipped_force(self, delta, u):
+        d = max(delta, 0.0)
+        elastic = self.kn * d if self.linear else self.hertz * d * math.sqrt(d)
+        return elastic + self.dashpot_force(d, u)
 
     def shear_stiffness(self, delta):
         return self.kt if self.linear else self.shear * math.sqrt(self.R * max(delta, 0.0))
@@ -218,6 +267,10 @@ class _Law:
         # for LS, kappa vs / u for Hertz-Mindlin, 3/2 of it for the secant laws (eq 38)
         sliding_ratio = kappa * vti / vni * (1.5 if name.startswith("hmdns_integral") else 1.0)
         slides = vti > 0.0 and sliding_ratio > mu
+        if self.dashpot and mu > 0.0:
+            # the dashpot's force jumps (LS) or grows as t^(1/4) (HM) at first touch: the
+            # Coulomb limit outgrows every elastic trial, the contact sticks
+            slides = False
         if name == "hmd":
             if slides:
                 return ("slide", 1.0, 0, None)
@@ -289,8 +342,10 @@ class _Law:
             dq = sign * self.mu * self.e_star * y[U] / (6.0 * self.g_star)  # d/dt of mu Fn / (8 G* a)
         else:
             dq = vs
-        return (y[U], -fn / self.m, -ft / self.m, -self.spin_factor * ft / self.m, dq,
-                self.mu * dfn, -self.mu * dfn, ds, dd)
+        # Ft*, Ft** (eq 23) are HMD's: held constant for the other laws, whose dashpot
+        # rate is infinite at first touch
+        memory = self.mu * dfn if name == "hmd" else 0.0
+        return (y[U], -fn / self.m, -ft / self.m, -self.spin_factor * ft / self.m, dq, memory, -memory, ds, dd)
 
     # -- events -------------------------------------------------------------------
     def events(self, mode, y):
@@ -300,12 +355,15 @@ class _Law:
         vs = y[VT] + y[WR]
         mu_fn = self.mu * fn
         out = [(y[DELTA], "end"), (y[U], "max_overlap")]
+        if self.dashpot:
+            # the force returns to zero before the overlap closes: the sphere leaves
+            out.append((self.unclipped_force(y[DELTA], y[U]), "end"))
         name = self.name
         if kind == "slide" or kind == "capped":
             if name in ("ls", "hm", "hmd"):
                 # elastic trial rate back inside the cone: sign kt vs < mu Fn'
-                if self.linear:
-                    out.append((sign * self.kt * vs - self.mu * dfn, "stick"))
+                if self.linear or self.dashpot:
+                    out.append((sign * self.shear_stiffness(y[DELTA]) * vs - self.mu * dfn, "stick"))
                 else:  # divided by 2 E* a: kappa vs sign < mu u
                     out.append((self.kappa * sign * vs - self.mu * y[U], "stick"))
             elif name == "lth":
@@ -577,6 +635,32 @@ def solve(impact: Impact, rtol: float = 1e-10, max_steps: int = 200_000) -> Solu
         x=2.0 * math.tan(angle) / (1.0 + en), y1=2.0 * vs / scale_out, y2=2.0 * y[WR] / scale_out,
         contact_duration=t, max_overlap=max_overlap, steps=steps, rejected=rejected, events=events,
     )
+
+
+_DAMPING = {}
+
+
+def damping_for(impact: Impact) -> float:
+    """The dashpot factor (zeta for LS, alpha for HM) with which this solver's normal
+    impact rebounds at ``impact.restitution``: bisection, the restitution falling from 1
+    as the factor grows. It depends on the restitution alone (scaling lengths and times
+    out of either equation leaves only the factor), so it is found once per law kind and
+    restitution."""
+    if not 0.0 < impact.restitution <= 1.0:
+        raise ValueError(f"reference: restitution must be in (0, 1], got {impact.restitution!r}")
+    key = (impact.law == "ls", impact.restitution)
+    if key not in _DAMPING:
+        def rebound(factor):
+            return solve(dataclasses.replace(impact, angle_deg=0.0, friction=0.0, damping=factor), 1e-12).en
+
+        low, high = 0.0, 1.0
+        while rebound(high) > impact.restitution:
+            low, high = high, 2.0 * high
+        for _ in range(48):
+            middle = 0.5 * (low + high)
+            low, high = (middle, high) if rebound(middle) > impact.restitution else (low, middle)
+        _DAMPING[key] = 0.5 * (low + high)
+    return _DAMPING[key]
 
 
 def sweep(laws=LAWS, angles=PAPER_ANGLES_DEG, rtol: float = 1e-10, **impact) -> dict:
