@@ -314,8 +314,8 @@ def test_damped_oblique_impact_converges_to_the_reference_at_first_order(law):
     # first order (docs/time-step.md), so the error must halve with the step, and
     # twice the 8000-step result minus the 4000-step one (first-order extrapolation) must
     # meet the reference. Measured: errors 1.4e-5 .. 1.9e-4 at 4000 steps, ratios
-    # 1.7-2.0, extrapolations within 2.5e-6 (HM's en, whose order is nearer 0.8:
-    # the Tsuji dashpot's delta^1/4) and 1e-7 (LS)
+    # 1.7-2.0, extrapolations within 2.5e-6 (HM's en, whose order is nearer 0.8 from
+    # 2000 to 16000 steps) and 1e-7 (LS)
     from conftest import impact_summary
 
     for angle in (10.0, 30.0, 45.0):

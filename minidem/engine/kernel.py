@@ -83,6 +83,7 @@ from numba.core.compiler import Compiler
 from minidem.geometry.primitives import (
     FACE,
     cross,
+    cylinder_normal,
     cylinder_overlap,
     pair_contact_velocity,
     plane_overlap,
@@ -239,7 +240,7 @@ def rotate_history(history, previous_normal, normal):
 # triangles and neighbours therefore live in force_range itself.
 @numba.njit(cache=True, inline="always")
 def contact_response(law, constants_row, history, overlap, previous, normal, previous_normal, curved, vi, wi, vj,
-                     wj, lever_i, lever_j, effective_radius, effective_mass, dt, stats):
+                     wj, lever_i, lever_j, lever_growth, effective_radius, effective_mass, dt, stats):
     """The one evaluation every contact goes through (sphere-plane, -cylinder,
     -triangle and -sphere): history turned with the contact, contact-point velocity and
     the law. Vectors are 3-tuples; n points from the partner to i. ``curved``: the normal
@@ -247,7 +248,10 @@ def contact_response(law, constants_row, history, overlap, previous, normal, pre
     contact's normal at the last step (the partners' positions one drift back: the
     velocities here are the drift's) in the form minidem.geometry.primitives describes,
     with which the history is turned exactly and the step's displacement taken at its
-    middle (``turned_increment``); a plane's (``curved`` False) is not read.
+    middle (``turned_increment``; the lever arms there are lever_i + lever_growth and
+    lever_j + lever_growth: a pair's arms, R - d/2, grow back by a quarter of the step's
+    overlap increment from the step's middle to its end); a plane's (``curved`` False)
+    is not read.
 
     ``law``: the law's force function, ``law_force`` in the tile of pair contacts (a law
     numba inlines is inlined there, where it becomes vector code) and ``law_force_alone``
@@ -272,11 +276,17 @@ def contact_response(law, constants_row, history, overlap, previous, normal, pre
         vi[0], vi[1], vi[2], wi[0], wi[1], wi[2], vj[0], vj[1], vj[2], wj[0], wj[1], wj[2], lever_i, lever_j,
         nx, ny, nz)
     if curved:
-        spin_lever = ZERO
+        spin_lever, middle_velocity = ZERO, tangential_velocity
         if SPIN:
-            spin_lever = (lever_i * wi[0] + lever_j * wj[0], lever_i * wi[1] + lever_j * wj[1],
-                          lever_i * wi[2] + lever_j * wj[2])
-        increment = turned_increment(tangential_velocity, normal_velocity, previous_normal, normal, spin_lever, dt)
+            # the spin's share of the contact velocity with the arms of the step's middle
+            # (else a pair's increment is off by n x (dd/4)(w_i + w_j) dt: first order)
+            wx, wy, wz = wi[0] + wj[0], wi[1] + wj[1], wi[2] + wj[2]
+            spin_lever = (lever_i * wi[0] + lever_j * wj[0] + lever_growth * wx,
+                          lever_i * wi[1] + lever_j * wj[1] + lever_growth * wy,
+                          lever_i * wi[2] + lever_j * wj[2] + lever_growth * wz)
+            gx, gy, gz = cross(nx, ny, nz, lever_growth * wx, lever_growth * wy, lever_growth * wz)
+            middle_velocity = (tangential_velocity[0] + gx, tangential_velocity[1] + gy, tangential_velocity[2] + gz)
+        increment = turned_increment(middle_velocity, normal_velocity, previous_normal, normal, spin_lever, dt)
     else:
         increment = (tangential_velocity[0] * dt, tangential_velocity[1] * dt, tangential_velocity[2] * dt)
     mx, my, mz = 0.0, 0.0, 0.0
@@ -322,7 +332,7 @@ def evaluate_contact(acc, constants_row, history, overlap, previous, normal, pre
     Returns (acc, then contact_response's values)."""
     on_i, direction, couple, fn, ft, increment, ok = contact_response(
         law_force_alone, constants_row, history, overlap, previous, normal, previous_normal, curved, vi, wi, vj, wj,
-        lever_i, lever_j, effective_radius, effective_mass, dt, stats)
+        lever_i, lever_j, 0.0, effective_radius, effective_mass, dt, stats)
     return add_contact(acc, lever_i, on_i, direction, couple), on_i, direction, couple, fn, ft, increment, ok
 
 
@@ -391,7 +401,8 @@ def evaluate_pair_tile(count, rows, constants, tile, tile_history, response, dt,
             law_force, constants[rows[k]], history_column(tile_history, k, TILE_CONTACTS), overlap, tile[T_PREVIOUS, k],
             (nx, ny, nz), ((nx - back * dvx) * seen, (ny - back * dvy) * seen, (nz - back * dvz) * seen), True,
             (dvx, dvy, dvz), wi, ZERO, wj,
-            ri - 0.5 * overlap, rj - 0.5 * overlap, ri * rj * mass_sum * shared, mi * mj * reach * shared, dt, stats)
+            ri - 0.5 * overlap, rj - 0.5 * overlap, 0.25 * (overlap - max(tile[T_PREVIOUS, k], 0.0)),
+            ri * rj * mass_sum * shared, mi * mj * reach * shared, dt, stats)
         response[R_ON_I, k], response[R_ON_I + 1, k], response[R_ON_I + 2, k] = on_i
         response[R_DIRECTION, k], response[R_DIRECTION + 1, k], response[R_DIRECTION + 2, k] = direction
         response[R_COUPLE, k], response[R_COUPLE + 1, k], response[R_COUPLE + 2, k] = couple
@@ -692,12 +703,9 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                     continue
                 if SPIN:
                     wi = (angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2])
-                # the normal at i's position one drift back (a sphere beyond an end of the
-                # cylinder then gets the axis's default normal: the turn falls back to a
-                # projection, normal_turn)
-                _, ax, ay, az = cylinder_overlap(px - dt * vi[0], py - dt * vi[1], pz - dt * vi[2], ri, base, axis,
-                                                 cylinder_radius, length, c)
-                previous_normal = seen_from((ax, ay, az), (nx, ny, nz))
+                # the normal at i's position one drift back
+                previous_normal = seen_from(cylinder_normal(px - dt * vi[0], py - dt * vi[1], pz - dt * vi[2], base,
+                                                            axis, c, (nx, ny, nz)), (nx, ny, nz))
                 acc, _, _, _, _, _, _, ok = evaluate_contact(
                     acc, constants[pair_row[material[i], cylinder_material[c]]], history_row_of(cylinder_history, i, c), overlap, previous,
                     (nx, ny, nz), previous_normal, True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)

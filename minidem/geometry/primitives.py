@@ -59,9 +59,9 @@ def turn_slot(history, o, previous_normal, normal):
 
     The smallest rotation taking a to b maps a vector v of a's plane to
     v - (v . b) (a + b) / (1 + a . b) (Rodrigues' formula with v . a = 0). With a given
-    as a' = a / (a . b) that is v - (v . b) (a' + b) / 2 to within the cube of the
-    step's angle: the slot lands exactly in b's plane and keeps its length and its
-    direction relative to the contact. Projecting onto b's plane and restoring the
+    as a' = a / (a . b), v - (v . b) (a' + b) / 2 differs from it by the fourth power of
+    the step's angle over 8 (relative to v): the slot lands exactly in b's plane and
+    keeps its length and its direction relative to the contact to that. Projecting onto b's plane and restoring the
     length (LAMMPS' and LIGGGHTS' convention, design notes on LAMMPS #3022) is off by
     the square of the angle every step, which made a pair's rebound converge at first
     order in the time step (docs/time-step.md).
@@ -82,7 +82,8 @@ def turned_increment(tangential_velocity, normal_velocity, previous_normal, norm
     To first order in the step's turn from a to b, that adds to ``tangential_velocity``
     (taken with b) the normal velocity the half turn tilts into the plane,
     normal_velocity / 2 (a' - b), and the spin about the normal it tilts,
-    (b . s) (a' x b) / 2 with s = lever_i w_i + lever_j w_j (``spin_lever``; a' as for
+    (b . s) (a' x b) / 2 with s = lever_i w_i + lever_j w_j (``spin_lever``, the arms
+    of the step's middle, as ``tangential_velocity``'s spin share; a' as for
     ``turn_slot``). Without them the increment is off by the step's angle in every step,
     a first-order error in the time step; with them by its square."""
     ax, ay, az = previous_normal
@@ -127,15 +128,33 @@ def cylinder_overlap(px, py, pz, radius, base, axis, cylinder_radius, length, c)
     ``axis``; beyond its ends there is no contact (an open silo). Returns
     (overlap, nx, ny, nz); the overlap is <= 0 when not in contact.
     """
-    rx, ry, rz = px - base[c, 0], py - base[c, 1], pz - base[c, 2]
-    s = rx * axis[c, 0] + ry * axis[c, 1] + rz * axis[c, 2]
+    s, rx, ry, rz, rho = _from_axis(px, py, pz, base, axis, c)
     if s < 0.0 or s > length[c]:
         return -1.0, 0.0, 0.0, 1.0
-    rx, ry, rz = rx - s * axis[c, 0], ry - s * axis[c, 1], rz - s * axis[c, 2]
-    rho = math.sqrt(rx * rx + ry * ry + rz * rz)
     if rho == 0.0:
         return radius - cylinder_radius[c], 0.0, 0.0, 1.0
     return radius + rho - cylinder_radius[c], -rx / rho, -ry / rho, -rz / rho
+
+
+@numba.njit(cache=True, inline="always")
+def _from_axis(px, py, pz, base, axis, c):
+    """(axial coordinate s, the point's offset from the axis r, its length rho) for
+    cylinder c."""
+    rx, ry, rz = px - base[c, 0], py - base[c, 1], pz - base[c, 2]
+    s = rx * axis[c, 0] + ry * axis[c, 1] + rz * axis[c, 2]
+    rx, ry, rz = rx - s * axis[c, 0], ry - s * axis[c, 1], rz - s * axis[c, 2]
+    return s, rx, ry, rz, math.sqrt(rx * rx + ry * ry + rz * rz)
+
+
+@numba.njit(cache=True, inline="always")
+def cylinder_normal(px, py, pz, base, axis, c, fallback):
+    """The normal of cylinder c's surface towards a point, whatever its axial coordinate
+    (the ends do not matter to where the normal points); ``fallback`` for a point on the
+    axis."""
+    _, rx, ry, rz, rho = _from_axis(px, py, pz, base, axis, c)
+    if rho == 0.0:
+        return fallback
+    return -rx / rho, -ry / rho, -rz / rho
 
 
 # feature of a triangle that holds the closest point
