@@ -42,8 +42,8 @@ def plane_overlap(px, py, pz, radius, wall_point, wall_normal, wall):
 @numba.njit(cache=True, inline="always")
 def seen_from(unit_normal, normal):
     """A unit previous normal in the form above; the current normal itself (no turn) for
-    one more than 60 degrees away, which no contact turns in a step (a sphere just
-    beyond a cylinder's end, whose normal is a placeholder there)."""
+    one more than 60 degrees away: no contact turns that far in a step, and the division
+    stays finite."""
     ax, ay, az = unit_normal
     cosine = ax * normal[0] + ay * normal[1] + az * normal[2]
     if cosine > 0.5:
@@ -61,10 +61,10 @@ def turn_slot(history, o, previous_normal, normal):
     v - (v . b) (a + b) / (1 + a . b) (Rodrigues' formula with v . a = 0). With a given
     as a' = a / (a . b), v - (v . b) (a' + b) / 2 differs from it by the fourth power of
     the step's angle over 8 (relative to v): the slot lands exactly in b's plane and
-    keeps its length and its direction relative to the contact to that. Projecting onto b's plane and restoring the
-    length (LAMMPS' and LIGGGHTS' convention, design notes on LAMMPS #3022) is off by
-    the square of the angle every step, which made a pair's rebound converge at first
-    order in the time step (docs/time-step.md).
+    keeps its length and its direction relative to the contact to that. Projecting onto
+    b's plane and restoring the length (LAMMPS' and LIGGGHTS' convention, design notes
+    on LAMMPS #3022) is off by the square of the angle every step: a first-order error
+    in the time step (docs/time-step.md).
     """
     hx, hy, hz = history[o], history[o + 1], history[o + 2]
     half = 0.5 * (hx * normal[0] + hy * normal[1] + hz * normal[2])
