@@ -93,3 +93,14 @@ def contact_count(state):
     n = len(offsets) - 1
     return (np.bincount(first[touching], minlength=n) + np.bincount(partners[touching], minlength=n)
             + np.bincount(state.plane_contacts()[0][state.planes[4] > 0], minlength=n))
+
+
+def rk4_step(acceleration, x, v, dt):
+    """One classical Runge-Kutta step of x'' = acceleration(x): the independent
+    integrations the tests compare the engine with (its velocity Verlet shares nothing
+    with it)."""
+    k1x, k1v = v, acceleration(x)
+    k2x, k2v = v + 0.5 * dt * k1v, acceleration(x + 0.5 * dt * k1x)
+    k3x, k3v = v + 0.5 * dt * k2v, acceleration(x + 0.5 * dt * k2x)
+    k4x, k4v = v + dt * k3v, acceleration(x + dt * k3x)
+    return x + dt / 6.0 * (k1x + 2 * k2x + 2 * k3x + k4x), v + dt / 6.0 * (k1v + 2 * k2v + 2 * k3v + k4v)

@@ -11,7 +11,7 @@ import numba
 import numpy as np
 import pytest
 
-from conftest import contact_count
+from conftest import contact_count, rk4_step
 from minidem.results import analysis
 from minidem.scene import scenario
 from minidem.engine import blocks, integrate, simulation
@@ -918,12 +918,7 @@ def _frictionless_relative_rebound(kn, effective_mass, reach, velocity, step=1e-
 
     r, v, t = np.array([-reach, 0.0]), np.array(velocity[:2], dtype=float), 0.0
     while t < 1e-6 or math.hypot(*r) <= reach:
-        k1v, k1r = acceleration(r), v
-        k2v, k2r = acceleration(r + step / 2 * k1r), v + step / 2 * k1v
-        k3v, k3r = acceleration(r + step / 2 * k2r), v + step / 2 * k2v
-        k4v, k4r = acceleration(r + step * k3r), v + step * k3v
-        r = r + step / 6 * (k1r + 2 * k2r + 2 * k3r + k4r)
-        v = v + step / 6 * (k1v + 2 * k2v + 2 * k3v + k4v)
+        r, v = rk4_step(acceleration, r, v, step)
         t += step
     return v
 

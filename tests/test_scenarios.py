@@ -14,7 +14,7 @@ import shlex
 import numpy as np
 import pytest
 
-from conftest import REPO
+from conftest import REPO, rk4_step
 from minidem.results import analysis
 from minidem.scene import scenario
 from minidem.engine import simulation
@@ -121,12 +121,7 @@ def _hertz_chain(mass: float, radius: float, youngs_modulus: float, poisson_rati
     v[0] = speed
     apart_since = 0.0
     while apart_since < 2.0 * contact_time:
-        k1x, k1v = v, acceleration(x)
-        k2x, k2v = v + 0.5 * dt * k1v, acceleration(x + 0.5 * dt * k1x)
-        k3x, k3v = v + 0.5 * dt * k2v, acceleration(x + 0.5 * dt * k2x)
-        k4x, k4v = v + dt * k3v, acceleration(x + dt * k3x)
-        x = x + dt / 6.0 * (k1x + 2 * k2x + 2 * k3x + k4x)
-        v = v + dt / 6.0 * (k1v + 2 * k2v + 2 * k3v + k4v)
+        x, v = rk4_step(acceleration, x, v, dt)
         apart_since = apart_since + dt if np.all(x[:-1] <= x[1:]) else 0.0
     return v
 

@@ -227,34 +227,34 @@ class _Law:
     def normal(self, delta, u):
         """Fn and dFn/dt (the force is that of the overlap; zero overlap ends contact; a
         dashpot's force is clipped at zero, where the contact ends too)."""
-        d = max(delta, 0.0)
-        if self.linear:
-            force, rate = self.kn * d, self.kn * u
-        else:
-            root = math.sqrt(d)
-            force, rate = self.hertz * d * root, 1.5 * self.hertz * root * u
+        force, rate = self._elastic(delta, u)
         if not self.dashpot:
             return force, rate
-        force += self.dashpot_force(d, u)
+        force = self.unclipped_force(delta, u)
         if force <= 0.0:
             return 0.0, 0.0
         acceleration = -force / self.m
         if self.linear:
             return force, rate + self.dashpot * acceleration
+        d = max(delta, 0.0)
         quarter = math.sqrt(math.sqrt(d))
         # d/dt (delta^1/4 u) = delta^1/4 u' + u^2 / (4 delta^3/4): infinite at first touch,
         # where no event reads it (the contact sticks, and rhs integrates Fn' only in slip)
         spread = 0.25 * u * u / (quarter * quarter * quarter) if d > 0.0 else 0.0
         return force, rate + self.dashpot * (quarter * acceleration + spread)
 
-    def dashpot_force(self, delta, u):
+    def _elastic(self, delta, u):
+        """The spring's force and its rate."""
         d = max(delta, 0.0)
-        return self.dashpot * u * (1.0 if self.linear else math.sqrt(math.sqrt(d)))
+        if self.linear:
+            return self.kn * d, self.kn * u
+        root = math.sqrt(d)
+        return self.hertz * d * root, 1.5 * self.hertz * root * u
 
     def unclipped_force(self, delta, u):
+        """Spring and dashpot (LS: dashpot u, HM: dashpot delta^1/4 u), before the clip."""
         d = max(delta, 0.0)
-        elastic = self.kn * d if self.linear else self.hertz * d * math.sqrt(d)
-        return elastic + self.dashpot_force(d, u)
+        return self._elastic(d, u)[0] + self.dashpot * u * (1.0 if self.linear else math.sqrt(math.sqrt(d)))
 
     def shear_stiffness(self, delta):
         return self.kt if self.linear else self.shear * math.sqrt(self.R * max(delta, 0.0))
