@@ -307,25 +307,38 @@ def test_reference_dashpot_factors_match_the_engine_mappings():
 
 
 @pytest.mark.parametrize("law", reference.DAMPED_LAWS)
-def test_damped_oblique_impact_converges_to_the_reference_at_first_order(law):
+def test_damped_oblique_impact_converges_to_the_reference(law):
     # e = 0.5, mu = 0.3: sticking at first touch (the dashpot's force outgrows every
     # elastic trial), then slip in both directions and release where the force returns to
-    # zero. The engine evaluates the dashpot with the drift's velocity, half a step old:
-    # first order (docs/time-step.md), so the error must halve with the step, and
-    # twice the 8000-step result minus the 4000-step one (first-order extrapolation) must
-    # meet the reference. Measured: errors 1.4e-5 .. 1.9e-4 at 4000 steps, ratios
-    # 1.7-2.0, extrapolations within 2.5e-6 (HM's en, whose order is nearer 0.8 from
-    # 2000 to 16000 steps) and 1e-7 (LS)
+    # zero. The engine hands the law the velocity at the end of the step (kernel
+    # END_VELOCITY) and starts a contact at the exact touch of the paper's start (kernel
+    # ``closes``): with the drift's half-step velocity and the touch's force left out, as
+    # LAMMPS and LIGGGHTS do, every damped impact was first order, 1.4e-5 (HM's en) to
+    # 1.9e-4 (LS's y1) off at 4000 steps per contact (docs/time-step.md).
+    # LS: its force is smooth but for the jump c v at the touch, now in the first step:
+    # second order, the error falls 16-fold from 2000 to 8000 steps where first order
+    # gives 4 (measured: en 2.1e-7 -> 1.3e-8; everything else within 1.8e-7 at 2000 and
+    # 3e-8 at 4000 steps, near the reference's own 3.5e-9).
+    # HM: its dashpot c(d) v grows as d^(1/4) ~ t^(1/4) from the touch, whose first steps
+    # no trapezoid integrates to better than dt^(5/4) (a property of the model): the order
+    # is 1.25 at the limit, above it while the dt^2 terms weigh (measured: worst over the
+    # components and angles 2.9e-5, 1.2e-5, 4.7e-6 at 2000, 4000, 8000 steps, ratios 2.4
+    # and 2.5 a halving; first order gives 2).
     from conftest import impact_summary
 
+    steps = (2000, 4000, 8000)
+    worst = []
     for angle in (10.0, 30.0, 45.0):
         expected = solve(Impact(law=law, angle_deg=angle, restitution=0.5, friction=0.3), 1e-12)
         assert [e for _, e in expected.events][0] == "start in stick"
         runs = {n: impact_summary(law, angle, contact__restitution=0.5, contact__friction=0.3,
-                                  run__steps_per_contact=n) for n in (4000, 8000)}
-        for k in ("en", "et", "y1", "y2"):
-            coarse, fine = (runs[n][k] - getattr(expected, k) for n in (4000, 8000))
-            assert abs(coarse) < 3e-4, (angle, k, coarse)
-            if abs(coarse) > 5e-6:
-                assert 1.5 < coarse / fine < 2.3, (angle, k, coarse, fine)
-            assert abs(2.0 * fine - coarse) < 5e-6, (angle, k, coarse, fine)
+                                  run__steps_per_contact=n) for n in steps}
+        errors = {n: {k: abs(runs[n][k] - getattr(expected, k)) for k in ("en", "et", "y1", "y2")} for n in steps}
+        worst.append([max(errors[n].values()) for n in steps])
+        if law == "ls":
+            assert errors[2000]["en"] / errors[8000]["en"] > 8.0, (angle, errors)
+            assert max(errors[4000].values()) < 1e-7, (angle, errors)
+    worst = [max(w[k] for w in worst) for k in range(len(steps))]
+    if law == "hm":
+        assert worst[0] / worst[1] > 2.2 and worst[1] / worst[2] > 2.2, worst
+        assert worst[1] < 3e-5, worst

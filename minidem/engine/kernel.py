@@ -134,6 +134,17 @@ CLOSING_KICK = 1.0 - OPENING_KICK
 CHECK_DISPLACEMENT = PAIRS or MESHES
 # the law keeps vector history (offsets VECTOR_OFFSETS) that must follow a turning contact
 ROTATE_HISTORY = SPIN and len(VECTOR_OFFSETS) > 0
+# The law is handed the contact's velocity at the end of the step, where the force is
+# applied, predicted from the drift's velocity (half a step old: velocity Verlet) by the
+# closing kick of the last step's force: v + CLOSING_KICK dt F_last / m. The step's
+# displacements are exact with the drift's velocity; a force in proportion to the
+# velocity (a dashpot) is not: with it every damped impact was first order in dt (as in
+# LAMMPS, LIGGGHTS and Yade, which read the half-step velocity); the prediction is off by
+# dt (F_new - F_last) / 2m, second order (docs/time-step.md, "Dashpots"). The last
+# step's force is in the force rows of a kernel without pairs only: a pair kernel's rows
+# sum the reactions during the pass, and keeping the last force beside them would cost
+# 48 bytes a particle.
+END_VELOCITY = not PAIRS
 # fast-math flags of the particle loops: none (every operation as written; the finite
 # checks must see NaN and infinity)
 FAST = False
@@ -147,6 +158,7 @@ FIRST_CONTACT_TIME, LAST_SEPARATION_TIME, MAX_OVERLAP, PEAK_NORMAL_FORCE, PEAK_T
 # probe slots: the contact of particle 0 with the probed wall, for per-step traces
 PROBE_OVERLAP, PROBE_FN, PROBE_FT, PROBE_DISPLACEMENT = 0, 1, 2, 5  # FT and DISPLACEMENT are 3-vectors
 ZERO = (0.0, 0.0, 0.0)
+NO_CHANGE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 # a mesh contact point this close (relative to the radius) to another contact's tangent
 # plane lies on the same surface (round-off of a flat mesh)
 _SAME_POINT = 1e-9
@@ -201,6 +213,22 @@ def engaged_above(constants, row):
 
 
 @numba.njit(cache=True, inline="always")
+def closes(vi, to_end, wall_normal, w):
+    """A sphere exactly touching plane w (overlap 0, or -reach) is in contact when it
+    moves into it at the step's end (END_VELOCITY: else never). Only a step grid that
+    starts at the touch meets it: the paper's start and analytic flight. The contact
+    then starts at that step, with the force of its first instant, as in the reference
+    solution: a dashpot's c v at zero overlap (linear spring-dashpot) is the force's
+    jump at the touch, and the step's trapezoid of force without it missed half a
+    step's impulse of it, a first-order error (e of LS at e = 0.5: 1.0e-4 at 4,000
+    steps per contact, halving with the step)."""
+    if not END_VELOCITY:
+        return False
+    return ((vi[0] + to_end[0]) * wall_normal[w, 0] + (vi[1] + to_end[1]) * wall_normal[w, 1]
+            + (vi[2] + to_end[2]) * wall_normal[w, 2]) < 0.0
+
+
+@numba.njit(cache=True, inline="always")
 def end_pair_contact(e, pair_history, reaction_slot, reaction, reaction_in_use):
     """Pair entry e stops touching: its history is dropped, and a reaction stored at its
     slot (finish_kick_drift's, or a call's last step's) is zero from now on and no longer
@@ -240,7 +268,7 @@ def rotate_history(history, previous_normal, normal):
 # triangles and neighbours therefore live in force_range itself.
 @numba.njit(cache=True, inline="always")
 def contact_response(law, constants_row, history, overlap, previous, normal, previous_normal, curved, vi, wi, vj,
-                     wj, lever_i, lever_j, lever_growth, effective_radius, effective_mass, dt, stats):
+                     wj, to_end, lever_i, lever_j, lever_growth, effective_radius, effective_mass, dt, stats):
     """The one evaluation every contact goes through (sphere-plane, -cylinder,
     -triangle and -sphere): history turned with the contact, contact-point velocity and
     the law. Vectors are 3-tuples; n points from the partner to i. ``curved``: the normal
@@ -259,6 +287,9 @@ def contact_response(law, constants_row, history, overlap, previous, normal, pre
     copy fewer of a combination's code inside the kernel, 1.7 s of the ~11 s its first
     compile takes for scenarios/settle.toml, compiled beside it, see
     minidem.engine.warmup).
+
+    ``to_end`` = (dv, dw) of i, from the drift's velocities here to the step's end
+    (END_VELOCITY; NO_CHANGE for a pair): the law's velocities are taken there.
 
     A wall is a partner that does not move (v_j = w_j = 0, lever_j = 0); its lever arm
     lever_i is the undeformed radius, as in the paper's rigid-body analysis (eqs 3-8).
@@ -289,6 +320,10 @@ def contact_response(law, constants_row, history, overlap, previous, normal, pre
         increment = turned_increment(middle_velocity, normal_velocity, previous_normal, normal, spin_lever, dt)
     else:
         increment = (tangential_velocity[0] * dt, tangential_velocity[1] * dt, tangential_velocity[2] * dt)
+    if END_VELOCITY:
+        normal_velocity, tangential_velocity = pair_contact_velocity(
+            vi[0] + to_end[0], vi[1] + to_end[1], vi[2] + to_end[2], wi[0] + to_end[3], wi[1] + to_end[4],
+            wi[2] + to_end[5], vj[0], vj[1], vj[2], wj[0], wj[1], wj[2], lever_i, lever_j, nx, ny, nz)
     mx, my, mz = 0.0, 0.0, 0.0
     if COUPLES:
         # rolling and twisting resistance: the law sees the spin of i relative to j and
@@ -326,13 +361,14 @@ def add_contact(acc, lever_i, on_i, direction, couple):
 
 
 @numba.njit(cache=True, inline="always")
-def evaluate_contact(acc, constants_row, history, overlap, previous, normal, previous_normal, curved, vi, wi, vj, wj,
-                     lever_i, lever_j, effective_radius, effective_mass, dt, stats):
-    """``contact_response`` added to acc (``add_contact``): a wall contact's evaluation.
-    Returns (acc, then contact_response's values)."""
+def evaluate_contact(acc, constants_row, history, overlap, previous, normal, previous_normal, curved, vi, wi, to_end,
+                     lever_i, effective_radius, effective_mass, dt, stats):
+    """``contact_response`` added to acc (``add_contact``): a wall contact's evaluation
+    (the wall at rest, no lever arm of its own). Returns (acc, then contact_response's
+    values)."""
     on_i, direction, couple, fn, ft, increment, ok = contact_response(
-        law_force_alone, constants_row, history, overlap, previous, normal, previous_normal, curved, vi, wi, vj, wj,
-        lever_i, lever_j, 0.0, effective_radius, effective_mass, dt, stats)
+        law_force_alone, constants_row, history, overlap, previous, normal, previous_normal, curved, vi, wi, ZERO,
+        ZERO, to_end, lever_i, 0.0, 0.0, effective_radius, effective_mass, dt, stats)
     return add_contact(acc, lever_i, on_i, direction, couple), on_i, direction, couple, fn, ft, increment, ok
 
 
@@ -400,7 +436,7 @@ def evaluate_pair_tile(count, rows, constants, tile, tile_history, response, dt,
         on_i, direction, couple, _, _, _, ok = contact_response(
             law_force, constants[rows[k]], history_column(tile_history, k, TILE_CONTACTS), overlap, tile[T_PREVIOUS, k],
             (nx, ny, nz), ((nx - back * dvx) * seen, (ny - back * dvy) * seen, (nz - back * dvz) * seen), True,
-            (dvx, dvy, dvz), wi, ZERO, wj,
+            (dvx, dvy, dvz), wi, ZERO, wj, NO_CHANGE,
             ri - 0.5 * overlap, rj - 0.5 * overlap, 0.25 * (overlap - max(tile[T_PREVIOUS, k], 0.0)),
             ri * rj * mass_sum * shared, mi * mj * reach * shared, dt, stats)
         response[R_ON_I, k], response[R_ON_I + 1, k], response[R_ON_I + 2, k] = on_i
@@ -640,12 +676,22 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
         # flight then touches no byte of it (finish_range)
         wi = ZERO
         acc = (mi * gravity[0], mi * gravity[1], mi * gravity[2], 0.0, 0.0, 0.0, 0)
+        to_end = NO_CHANGE
+        if END_VELOCITY:
+            # the closing kick of the last step's force, which the rows hold (finish_range)
+            kick_scale = CLOSING_KICK * dt * inverse_mass[i]
+            to_end = (kick_scale * force[i, 0], kick_scale * force[i, 1], kick_scale * force[i, 2], 0.0, 0.0, 0.0)
+            if SPIN:
+                spin_scale = CLOSING_KICK * dt * inverse_inertia[i]
+                to_end = (to_end[0], to_end[1], to_end[2], spin_scale * torque[i, 0], spin_scale * torque[i, 1],
+                          spin_scale * torque[i, 2])
 
         # Walls. Each kind has its own loop: binding the history rows of different
         # arrays to one variable would cost reference counting per contact (see above).
         # planes: those near i (State.list_near_planes; all of them in a tracked kernel),
         # each entry k with its own history and last overlap (carried over at list
         # builds); a plane's normal never turns, so its history needs no rotation
+        probed = False  # the probed plane's contact was evaluated (TRACK, sphere 0)
         for k in range(near_offsets[i], near_offsets[i + 1]):
             if k < 0:  # never (non_negative)
                 continue
@@ -656,7 +702,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
             if TRACK:
                 note_transitions(stats, time, dt, overlap, previous)
             lives_above = engaged_above(constants, pair_row[material[i], wall_material[w]])
-            if overlap <= lives_above:
+            if overlap <= lives_above and not (overlap == lives_above and closes(vi, to_end, wall_normal, w)):
                 if previous > lives_above:
                     wall_history[k, :] = 0.0  # contact ends: its history is dropped
                 continue
@@ -667,12 +713,13 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 wi = (angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2])
             acc, _, _, _, fn, ft, increment, ok = evaluate_contact(
                 acc, constants[pair_row[material[i], wall_material[w]]], history_row(wall_history, k), overlap, previous,
-                (wall_normal[w, 0], wall_normal[w, 1], wall_normal[w, 2]), ZERO, False, vi, wi, ZERO, ZERO, ri, 0.0,
-                ri, mi, dt, stats)
+                (wall_normal[w, 0], wall_normal[w, 1], wall_normal[w, 2]), ZERO, False, vi, wi, to_end, ri, ri, mi, dt,
+                stats)
             if not ok:
                 fault(status, NON_FINITE_FORCE, i, w, PLANE)
                 break
             if TRACK and i == 0 and w == probe_wall:
+                probed = True
                 probe[PROBE_OVERLAP] = overlap
                 probe[PROBE_FN] = fn
                 probe[PROBE_FT], probe[PROBE_FT + 1], probe[PROBE_FT + 2] = ft
@@ -681,8 +728,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 probe[PROBE_DISPLACEMENT + 2] += increment[2]
         # a tracked kernel lists every plane for every sphere, in order: sphere 0's entry
         # for plane w is w
-        if TRACK and i == 0 and 0 <= probe_wall and wall_overlap[probe_wall] <= engaged_above(
-                constants, pair_row[material[i], wall_material[probe_wall]]):
+        if TRACK and i == 0 and 0 <= probe_wall and not probed:
             probe[PROBE_OVERLAP], probe[PROBE_FN] = wall_overlap[probe_wall], 0.0
             probe[PROBE_FT], probe[PROBE_FT + 1], probe[PROBE_FT + 2] = 0.0, 0.0, 0.0
 
@@ -708,7 +754,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                                                             axis, c, (nx, ny, nz)), (nx, ny, nz))
                 acc, _, _, _, _, _, _, ok = evaluate_contact(
                     acc, constants[pair_row[material[i], cylinder_material[c]]], history_row_of(cylinder_history, i, c), overlap, previous,
-                    (nx, ny, nz), previous_normal, True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)
+                    (nx, ny, nz), previous_normal, True, vi, wi, to_end, ri, ri, mi, dt, stats)
                 if not ok:
                     fault(status, NON_FINITE_FORCE, i, c, CYLINDER)
                     break
@@ -775,7 +821,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                         acc, constants[pair_row[material[i], triangle_material[t]]], history_row(mesh_history, k), overlap, previous,
                         (nx, ny, nz), seen_from(mesh_normal_at(px - dt * vi[0], py - dt * vi[1], pz - dt * vi[2], triangles,
                                                                turned_from), (nx, ny, nz)),
-                        True, vi, wi, ZERO, ZERO, ri, 0.0, ri, mi, dt, stats)
+                        True, vi, wi, to_end, ri, ri, mi, dt, stats)
                     if not ok:
                         fault(status, NON_FINITE_FORCE, i, t, TRIANGLE)
                         break
@@ -968,7 +1014,7 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
             fx, fy, fz = fx + rfx, fy + rfy, fz + rfz
             if SPIN:
                 tx, ty, tz = tx + rtx, ty + rty, tz + rtz
-        if not drift_on:
+        if not drift_on or END_VELOCITY:  # END_VELOCITY: read by the next force pass
             force[p, 0], force[p, 1], force[p, 2] = fx, fy, fz
             torque[p, 0], torque[p, 1], torque[p, 2] = tx, ty, tz
         elif PAIRS and (pending or not own_given):

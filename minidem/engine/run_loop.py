@@ -321,6 +321,11 @@ class RunLoop:
         except numba.core.errors.NumbaError as exc:
             raise laws.LawError(f"law '{sim.law.name}' from plugin '{sim.entry.plugin}' "
                                 f"({sim.entry.distribution}): {force_problem(sim.law, exc)}") from exc
+        finally:
+            # a helper still running (the run failed or was interrupted while it compiled)
+            # is ended and reaped here: left to the interpreter's exit, a second Ctrl-C
+            # could land in its Popen.__del__ and print a traceback
+            helper.stop()
         if self.resume_from is None:
             self.energy.append((self.start_time, state.kinetic_energy(state.inertia)))
             if self.frames_on:
