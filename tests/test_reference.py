@@ -312,7 +312,7 @@ def test_damped_oblique_impact_converges_to_the_reference(law):
     # elastic trial), then slip in both directions and release where the force returns to
     # zero. The engine hands the law the velocity at the end of the step (kernel
     # END_VELOCITY) and starts a contact at the exact touch of the paper's start (kernel
-    # ``closes``): with the drift's half-step velocity and the touch's force left out, as
+    # ``touches_at_start``): with the drift's half-step velocity and the touch's force left out, as
     # LAMMPS and LIGGGHTS do, every damped impact was first order, 1.4e-5 (HM's en) to
     # 1.9e-4 (LS's y1) off at 4000 steps per contact (docs/time-step.md).
     # LS: its force is smooth but for the jump c v at the touch, now in the first step:
@@ -342,3 +342,40 @@ def test_damped_oblique_impact_converges_to_the_reference(law):
     if law == "hm":
         assert worst[0] / worst[1] > 2.2 and worst[1] / worst[2] > 2.2, worst
         assert worst[1] < 3e-5, worst
+
+def _damped_ls_impact(**changes):
+    """The summary of LS at e = 0.5, mu = 0.3, 30 deg from oblique.toml, changed as given
+    (keys of the scenario's tables: walls, impact, run)."""
+    import tomllib
+
+    from conftest import OBLIQUE
+    from minidem.engine import simulation
+    from minidem.results import analysis
+    from minidem.scene import scenario
+
+    data = tomllib.loads(OBLIQUE.read_text())
+    data["contact"].update(law="ls", restitution=0.5, friction=0.3)
+    data["impact"]["angle_deg"] = 30.0
+    data["output"] = {"vtk": False}
+    for table, values in changes.items():
+        if table == "walls":
+            data["walls"][0].update(values)
+        else:
+            data.setdefault(table, {}).update(values)
+    return analysis.summary(simulation.Simulation(scenario.build_scene(data)).run())
+
+
+@pytest.mark.parametrize("start", [{"run": {"integrator": "velocity_verlet"}},
+                                   {"impact": {"gap": 1e-3}, "run": {"integrator": "analytic_flight"}}])
+def test_a_touch_at_the_start_counts_on_a_tilted_plane_too(start):
+    # The same impact on a plane tilted by 10 deg: the sphere's placement (touching, the
+    # paper's start) or analytic flight's move to the touch leaves an overlap of a few
+    # 1e-18 m either side of zero, and the touch at the start must count all the same
+    # (kernel touches_at_start), or LS's jump c v at the touch is missed: a first-order
+    # error, 1.0e-4 in en at 4,000 steps per contact (measured before the tolerance on
+    # such a tilt; the flat plane and the tilted one now agree within 5e-13)
+    tilt = math.radians(10.0)
+    flat = _damped_ls_impact(**start)
+    tilted = _damped_ls_impact(walls={"normal": [0.0, math.sin(tilt), math.cos(tilt)]}, **start)
+    for k in ("en", "et", "y1", "y2"):
+        assert tilted[k] == pytest.approx(flat[k], abs=1e-9), k

@@ -213,19 +213,18 @@ def engaged_above(constants, row):
 
 
 @numba.njit(cache=True, inline="always")
-def closes(vi, to_end, wall_normal, w):
-    """A sphere exactly touching plane w (overlap 0, or -reach) is in contact when it
-    moves into it at the step's end (END_VELOCITY: else never). Only a step grid that
-    starts at the touch meets it: the paper's start and analytic flight. The contact
-    then starts at that step, with the force of its first instant, as in the reference
-    solution: a dashpot's c v at zero overlap (linear spring-dashpot) is the force's
-    jump at the touch, and the step's trapezoid of force without it missed half a
-    step's impulse of it, a first-order error (e of LS at e = 0.5: 1.0e-4 at 4,000
-    steps per contact, halving with the step)."""
-    if not END_VELOCITY:
+def touches_at_start(dt, overlap, lives_above, ri, vi, wall_normal, w):
+    """A sphere touching plane w when the run starts (the zero-length first call, dt = 0:
+    the paper's start, analytic flight's touch), within the round-off of placing it there
+    (_SAME_POINT), and moving into it: in contact from that instant, with the force of
+    the touch itself, as in the reference solution. A linear dashpot's c v at zero
+    overlap is the force's jump there, and a first step without it missed half a step's
+    impulse of it, a first-order error (e of LS at e = 0.5: 1.0e-4 at 4,000 steps per
+    contact, halving with the step). Only with END_VELOCITY (a kernel without pairs); at
+    dt > 0 never, where the step that ends touching has not carried the contact."""
+    if not END_VELOCITY or dt != 0.0 or overlap < lives_above - _SAME_POINT * ri:
         return False
-    return ((vi[0] + to_end[0]) * wall_normal[w, 0] + (vi[1] + to_end[1]) * wall_normal[w, 1]
-            + (vi[2] + to_end[2]) * wall_normal[w, 2]) < 0.0
+    return vi[0] * wall_normal[w, 0] + vi[1] * wall_normal[w, 1] + vi[2] * wall_normal[w, 2] < 0.0
 
 
 @numba.njit(cache=True, inline="always")
@@ -697,14 +696,20 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 continue
             w = non_negative(near_planes[k])
             overlap = plane_overlap(px, py, pz, ri, wall_point, wall_normal, w)
+            lives_above = engaged_above(constants, pair_row[material[i], wall_material[w]])
+            touching_at_start = overlap <= lives_above and touches_at_start(dt, overlap, lives_above, ri, vi,
+                                                                             wall_normal, w)
+            if touching_at_start:
+                overlap = lives_above  # the law sees the touch itself
             previous = wall_overlap[k]
             wall_overlap[k] = overlap
             if TRACK:
                 note_transitions(stats, time, dt, overlap, previous)
-            lives_above = engaged_above(constants, pair_row[material[i], wall_material[w]])
-            if overlap <= lives_above and not (overlap == lives_above and closes(vi, to_end, wall_normal, w)):
-                if previous > lives_above:
-                    wall_history[k, :] = 0.0  # contact ends: its history is dropped
+            if overlap <= lives_above and not touching_at_start:
+                # contact ends: its history is dropped (>=: also one that began touching at
+                # the start, stored at lives_above, and went no further)
+                if previous >= lives_above:
+                    wall_history[k, :] = 0.0
                 continue
             if overlap >= ri:
                 fault(status, TUNNELLED, i, w, PLANE)
@@ -956,10 +961,12 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
     before ``block_first`` (the force pass's first particle) it is not finished but its
     own force stored, for finish_kick_drift; else its own force is read from those
     rows and its reactions from its transposed row (see the module docstring). The total
-    is stored only when the drift is not fused (the call's last step, and every traced or
+    is stored when the drift is not fused (the call's last step, and every traced or
     stop-at-separation step: the next call's opening kick and the run between chunks read
-    it); with the drift fused, rows that hold something (reactions, or the own force of a
-    particle finish_kick_drift finishes) are zeroed for the next force pass instead."""
+    it), and always without pairs (END_VELOCITY: the next force pass predicts with it);
+    with the drift fused, a pair kernel's rows that hold something (reactions, or the own
+    force of a particle finish_kick_drift finishes) are zeroed for the next force pass
+    instead."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
     sampling, inertia, particle_energy = energy_step
     if PAIRS:  # else an empty tuple (see advance)
@@ -1149,9 +1156,10 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
     * after a drift that took a particle more than half the skin from where the Verlet
       list was built: the caller rebuilds the list and calls again with ``resume``
       True, which continues from the force evaluation of the step that drift began
-      (the force and torque rows are then zero, as every fused step leaves them, for
-      the force pass to sum reactions into; a state holding totals, e.g. restored, is
-      continued with ``resume`` False, whose opening kick_drift reads and zeroes them);
+      (a pair kernel's force and torque rows are then zero, as every fused step leaves
+      them, for the force pass to sum reactions into; a state holding totals, e.g.
+      restored, is continued with ``resume`` False, whose opening kick_drift reads and
+      zeroes them);
     * after the step in which the last contact ended (``stop_at_separation``, once a
       contact has occurred; tracked scenes only);
     * on a fault (status[0] != OK).

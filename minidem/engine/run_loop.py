@@ -426,9 +426,10 @@ class RunLoop:
         of the work of gravity is kept from the checks ``on_grid`` (steps every run of the
         scene checks, resumed or not: the grid of chunks and the list rebuilds), not from a
         chunk cut short by a probe or a checkpoint due by wall time. Before a list rebuild
-        (mid-step) the force and torque arrays are zero (the force pass sums reactions
-        into them and stores totals only at a call's last step); a non-finite force of
-        this step stops the kernel itself."""
+        (mid-step) a pair kernel's force and torque arrays are zero (the force pass sums
+        reactions into them and stores totals only at a call's last step; a kernel without
+        pairs holds the last step's totals there); a non-finite force of this step stops
+        the kernel itself."""
         at_time = self.start_time + step * self.sim.dt
         fault, work_max = self.guard.check(self.state, at_time, self.loop["gravity_work_max"])
         if on_grid:
@@ -445,7 +446,7 @@ class RunLoop:
         if status[0] != kernel.OK:
             self.fail(sim._fault_message(status, steps),
                       None if status[0] != kernel.NON_FINITE_FORCE else
-                      "A law's force must be finite at every overlap > 0 and speed; if this one is, the time "
+                      "A law's force must be finite at every overlap >= 0 and speed; if this one is, the time "
                       f"step may be too large: {sim.suggested_time_step()}")
 
     # -- the loop ----------------------------------------------------------------

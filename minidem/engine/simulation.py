@@ -193,7 +193,9 @@ class Simulation:
                  compile: bool = True, notify=None):
         """``kernel_flags`` forces scene-shape flags on (e.g. {"PAIRS": True}) to measure
         what modelling only what a scene needs saves (``minidem bench``); results are
-        the same, only the cost differs. ``compile=False`` stops after the constants, the
+        the same (but with a dashpot: forcing PAIRS takes away the end-of-step velocity a
+        kernel without pairs hands it, docs/time-step.md "Dashpots"), only the cost
+        differs. ``compile=False`` stops after the constants, the
         time step and the checks of what they imply (validation: a sweep's every case,
         the input fuzz test); such a Simulation cannot run. ``notify(text)``: told what is
         being prepared when a law's prepare() or the kernel's compilation takes more than
@@ -416,7 +418,11 @@ class Simulation:
 
         Velocity Verlet and symplectic Euler (the same positions) are stable on a linear
         oscillator of frequency omega for dt < 2/omega, or (2/omega)(sqrt(1 + zeta^2) - zeta)
-        with damping ratio zeta. Each contact kind has a normal mode, omega^2 = kn/m*, and
+        with damping ratio zeta, the dashpot reading the drift's velocity. A kernel without
+        pairs hands it the velocity predicted at the end of the step instead (kernel
+        END_VELOCITY, v + dt a_last / 2 with velocity Verlet's closing half kick), which
+        makes the last acceleration part of the scheme: its limit is the same with zeta
+        doubled (docs/time-step.md). Each contact kind has a normal mode, omega^2 = kn/m*, and
         when it can carry friction a tangential mode in which the contact point moves
         against both the translation and the rotation of the sphere(s),
         omega^2 = kt (1/m* + R^2/I) = 3.5 kt/m* for solid spheres (I = 2/5 m R^2). The
@@ -426,6 +432,8 @@ class Simulation:
         """
         speed = self.characteristic_speed()
         gravity = float(np.linalg.norm(self.scene.gravity))
+        # the kernel's rule (END_VELOCITY = not PAIRS; no closing kick, nothing predicted)
+        predicted = not self.pairs and integrate.OPENING_KICK[self.scene.integrator] == 0.5
         best, why = math.inf, "no contact possible"
         for pair, named, r, m, kind in self.contact_kinds():
             k_hertz = 4.0 / 3.0 * pair.effective_modulus * math.sqrt(r)
@@ -435,7 +443,7 @@ class Simulation:
             normal, tangential, zeta = laws.law_stiffness(self.law, pair, named, r, m, overlap)
             # name the overlap only when the stiffness depends on it (not for a linear spring)
             depends = laws.law_stiffness(self.law, pair, named, r, m, 2.0 * overlap)[:2] != (normal, tangential)
-            modes = [("normal", math.sqrt(normal / m), zeta)]
+            modes = [("normal", math.sqrt(normal / m), 2.0 * zeta if predicted else zeta)]
             if self.spin:
                 modes.append(("tangential", math.sqrt(3.5 * tangential / m), 0.0))
             for mode, omega, damping in modes:
@@ -443,7 +451,9 @@ class Simulation:
                 if limit < best:
                     best = limit
                     why = (f"{mode} mode of a {kind} contact, omega = {omega:.4g} rad/s"
-                           + (f", damping ratio {damping:.3g}" if damping else "")
+                           + (f", damping ratio {damping / 2.0 if predicted else damping:.3g}"
+                              + (", doubled by the end-of-step velocity it reads" if predicted else "")
+                              if damping else "")
                            + (f", stiffness at overlap {overlap:.3g} m" if depends else ""))
         return best, why
 
