@@ -332,7 +332,7 @@ def command_verify(args) -> int:
     # the battery as run: its --set values change what it checks
     print(" ".join(["minidem verify", args.law, *(f"--set {value}" for value in args.set or ())]))
     print(verify.format_table(checks))
-    print(f"  report: {out / 'verify.json'}, {out / 'verify.png'}")
+    print(f"  report: {', '.join(str(path) for path in verify.report_files(out, checks))}")
     return EXIT_FAILURE if any(c.passed is False for c in checks) else EXIT_OK
 
 

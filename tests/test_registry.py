@@ -520,3 +520,22 @@ def test_bounds_print_an_unbounded_side_open_because_values_must_be_finite():
     assert special.bounds_text() == "one of the integers 0..5"
     assert special.check(2.5) == "must be one of the integers 0..5, got 2.5"
     assert special.check(3) is None
+
+
+def test_a_plugin_whose_hook_pluggy_ignores_is_reported_not_silently_missing(tmp_path, monkeypatch):
+    # pluggy ignores a hook function without @minidem.hookimpl, and keeps a marked one of
+    # a misspelt name aside: either way the plugin's laws were silently missing, and the
+    # run said only "unknown contact law" (found by a plugin author's walk-through)
+    body = ("from minidem import hookimpl\n\n"
+            "{mark}def {name}(registry):\n    raise AssertionError('never called')\n")
+    modules = {"fake_unmarked": ("", "minidem_register_laws"), "fake_misspelt": ("@hookimpl\n", "minidem_register_law"),
+               "fake_hookless": ("", "setup")}
+    for module, (mark, name) in modules.items():
+        (tmp_path / f"{module}.py").write_text(body.format(mark=mark, name=name))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    registry = load(*modules)
+    reasons = {b.plugin: b.reason for b in registry.broken}
+    assert "decorate it with @minidem.hookimpl" in reasons["fake_unmarked"]
+    assert "defines minidem_register_law, not the hook minidem_register_laws" in reasons["fake_misspelt"]
+    assert "defines no minidem_register_laws hook" in reasons["fake_hookless"]
+    assert registry.entry("hmd").plugin == "builtin"  # the others are untouched

@@ -91,6 +91,14 @@ def test_a_force_writing_past_its_declared_history_is_caught(tmp_path, monkeypat
     assert check.passed is False and "wrote history[1]" in check.value and "declares 1 slot" in check.value
     [sound] = verify.Battery("hm").history_bounds()
     assert sound.passed is True
+    # the whole battery ends there, its report written: the engine's checks would run the
+    # force on the engine's history rows, and the process died of the overrun (free():
+    # invalid next size) before it printed anything (found by a plugin author's walk-through)
+    [ended] = verify.run_checks(verify.Battery("fake_overrun"), tmp_path / "report")
+    assert ended.passed is False and ended.name == check.name
+    assert json.loads((tmp_path / "report" / "verify.json").read_text())["checks"][0]["passed"] is False
+    assert verify.report_files(tmp_path / "report", [ended]) == [tmp_path / "report" / "verify.json"]
+    assert not (tmp_path / "report" / "verify.png").exists()
 
 
 SPRING_PLUGIN = '''

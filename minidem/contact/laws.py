@@ -501,6 +501,8 @@ def load_registry(extra_plugins: tuple = ()) -> LawRegistry:
             registry.broken.append(BrokenPlugin(plugin_name, None, f"invalid hook implementation: {_one_line(exc)}"))
             continue
         impls = [i for i in manager.hook.minidem_register_laws.get_hookimpls() if i.plugin is obj]
+        if not impls:
+            registry.broken.append(BrokenPlugin(plugin_name, None, _no_hook(obj)))
         for impl in impls:
             registry._current = (plugin_name, dist, version)
             try:
@@ -509,6 +511,20 @@ def load_registry(extra_plugins: tuple = ()) -> LawRegistry:
                 registry.broken.append(BrokenPlugin(plugin_name, None, f"minidem_register_laws raised {_one_line(exc)}"))
         registry._current = ("<direct>", "<direct>", "")
     return registry
+
+
+def _no_hook(plugin) -> str:
+    """Why a plugin registered nothing: pluggy ignores a hook function without the
+    @minidem.hookimpl mark and keeps a marked one of an unknown name aside, so either
+    mistake left the plugin's laws silently missing ("unknown contact law")."""
+    hook = "minidem_register_laws"
+    names = [name for name in dir(plugin) if callable(getattr(plugin, name, None))]
+    if hook in names:
+        return f"its {hook} is not marked as a hook: decorate it with @minidem.hookimpl"
+    close = difflib.get_close_matches(hook, names, n=1, cutoff=0.8)
+    if close:
+        return f"it defines {close[0]}, not the hook {hook}: rename it"
+    return f"it defines no {hook} hook (decorated with @minidem.hookimpl), so it registers no law"
 
 
 # What a plugin's code may raise without taking minidem down: every exception, and

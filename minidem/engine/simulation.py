@@ -413,8 +413,9 @@ class Simulation:
             times.append(math.pi * radius * math.sqrt(mat.density / shear) / (0.1631 * mat.poisson_ratio + 0.8766))
         return min(times) if times else math.inf
 
-    def stability_limit(self) -> tuple[float, str]:
-        """Largest stable dt of the integrator on the scene's stiffest contact mode, and why.
+    def stability_limit(self) -> tuple[float, str, bool]:
+        """Largest stable dt of the integrator on the scene's stiffest contact mode, why,
+        and whether that mode's dashpot lowers it.
 
         Velocity Verlet and symplectic Euler (the same positions) are stable on a linear
         oscillator of frequency omega for dt < 2/omega, or (2/omega)(sqrt(1 + zeta^2) - zeta)
@@ -434,7 +435,7 @@ class Simulation:
         gravity = float(np.linalg.norm(self.scene.gravity))
         # the kernel's rule (END_VELOCITY = not PAIRS; no closing kick, nothing predicted)
         predicted = not self.pairs and integrate.OPENING_KICK[self.scene.integrator] == 0.5
-        best, why = math.inf, "no contact possible"
+        best, why, damped = math.inf, "no contact possible", False
         for pair, named, r, m, kind in self.contact_kinds():
             k_hertz = 4.0 / 3.0 * pair.effective_modulus * math.sqrt(r)
             impact = (15.0 * m * speed**2 / (16.0 * pair.effective_modulus * math.sqrt(r))) ** 0.4
@@ -449,18 +450,19 @@ class Simulation:
             for mode, omega, damping in modes:
                 limit = 2.0 / omega * (math.sqrt(1.0 + damping**2) - damping)
                 if limit < best:
-                    best = limit
+                    best, damped = limit, damping > 0.0
                     why = (f"{mode} mode of a {kind} contact, omega = {omega:.4g} rad/s"
                            + (f", damping ratio {damping / 2.0 if predicted else damping:.3g}"
                               + (", doubled by the end-of-step velocity it reads" if predicted else "")
                               if damping else "")
                            + (f", stiffness at overlap {overlap:.3g} m" if depends else ""))
-        return best, why
+        return best, why, damped
 
     def _choose_time_step(self) -> tuple[float, str]:
         scene = self.scene
         self.reference_contact_time = self.contact_time()
-        self.stability, stability_why = self.stability_limit()
+        self.stability, stability_why, self.stability_damped = self.stability_limit()
+        self.stability_why = stability_why
         limit_text = (f"stability limit {self.stability:.4g} s of run.integrator = \"{scene.integrator}\" "
                       f"({stability_why})")
         if scene.dt is not None:
@@ -489,7 +491,10 @@ class Simulation:
             (self.reference_contact_time / scene.steps_per_contact,
              f"contact time {self.reference_contact_time:.4g} s / {scene.steps_per_contact} steps per contact"),
             (RAYLEIGH_FRACTION * rayleigh, f"{RAYLEIGH_FRACTION:g} x Rayleigh time {rayleigh:.4g} s"),
-            (STABILITY_SAFETY * self.stability, f"{STABILITY_SAFETY:g} x stability limit {self.stability:.4g} s"),
+            # the mode named when a dashpot lowers the limit (the limit alone said nothing of why
+            # it fell with the restitution)
+            (STABILITY_SAFETY * self.stability, f"{STABILITY_SAFETY:g} x stability limit {self.stability:.4g} s"
+             + (f" ({self.stability_why})" if self.stability_damped else "")),
         ]
         dt, reason = min(candidates)
         others = "; ".join(text for value, text in candidates if text != reason)

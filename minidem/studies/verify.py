@@ -474,8 +474,18 @@ def run_battery(law_name: str, overrides: list[str] = (), out_directory: Path | 
 
 
 def run_checks(battery: Battery, out_directory: Path | None = None) -> list[Check]:
-    """Every check of the battery, and its report in ``out_directory`` (None: none)."""
-    checks = battery.history_bounds() + battery.energy() + battery.sliding_limit() + battery.duration()
+    """Every check of the battery, and its report in ``out_directory`` (None: none).
+
+    A force that writes past its declared history slots ends the battery there, with
+    that check failed: every later check runs it in the engine, whose history rows it
+    would overrun (numba checks no bounds), and the process died on a corrupted heap
+    before the table was printed (free(): invalid next size)."""
+    checks = battery.history_bounds()
+    if not all(c.passed for c in checks):
+        if out_directory is not None:
+            _write_report(out_directory, battery, checks, None, None)
+        return checks
+    checks += battery.energy() + battery.sliding_limit() + battery.duration()
     checks += battery.adhesion()
     comparison, curves = battery.against_hmd()
     loop, trace = battery.first_loop()
@@ -483,6 +493,13 @@ def run_checks(battery: Battery, out_directory: Path | None = None) -> list[Chec
     if out_directory is not None:
         _write_report(out_directory, battery, checks, curves, trace)
     return checks
+
+
+def report_files(directory: Path, checks: list[Check]) -> list[Path]:
+    """The files of the report ``run_checks`` wrote for ``checks``: no figure when the
+    battery ended at its first check."""
+    stopped = len(checks) == 1 and checks[0].passed is False
+    return [Path(directory) / "verify.json"] + ([] if stopped else [Path(directory) / "verify.png"])
 
 
 def _write_report(directory: Path, battery: Battery, checks: list[Check], curves: dict, trace: np.ndarray) -> None:
@@ -496,6 +513,8 @@ def _write_report(directory: Path, battery: Battery, checks: list[Check], curves
     files.write_json(Path(directory) / "verify.json", {
         "law": battery.law.name, "package": battery.entry.distribution, "version": battery.entry.version,
         "checks": [dataclasses.asdict(c) for c in checks], "curves": curves})
+    if curves is None:  # the battery ended at its first check (run_checks): nothing to draw
+        return
     mu = battery.friction
     fig, axes = plt.subplots(1, 4, figsize=(18, 4.2))
     x = np.linspace(0, max(curves["hmd"]["x"]), 50)
