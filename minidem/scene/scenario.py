@@ -732,6 +732,17 @@ def load_scene(path: str | Path, overrides: list[str] = (), output_directory: st
     return build_scene(data, str(path), output_directory, while_checking)
 
 
+def _vtk_on(output: dict, impact, source: str) -> bool:
+    """output.vtk as given, or its default (on for a scene without [impact]); a contact
+    network asked for with the series off would be ignored without a word: said."""
+    vtk = impact is None if output["vtk"] is None else output["vtk"]
+    if output["contacts"] and not vtk:
+        warnings.warn(f"{source}: output.contacts = true writes nothing while output.vtk is "
+                      f"{'false' if output['vtk'] is False else 'off (the default for a scene with [impact])'}: "
+                      "set output.vtk = true for the contact network", stacklevel=3)
+    return vtk
+
+
 def build_scene(data: dict, source: str = "<scenario>", output_directory=None, while_checking=None) -> Scene:
     """Validate a scenario (the dict a TOML file parses to) and build its Scene. Every
     problem is collected with its key and reported at once (ScenarioError); then what
@@ -791,7 +802,7 @@ def build_scene(data: dict, source: str = "<scenario>", output_directory=None, w
         raw=data,
         skin=run["skin"],
         threads=run["threads"],
-        vtk=impact is None if output["vtk"] is None else output["vtk"],
+        vtk=_vtk_on(output, impact, source),
         output_interval=output["interval"],
         vtk_contacts=output["contacts"],
         checkpoint_interval=output["checkpoint_interval"],

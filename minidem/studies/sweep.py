@@ -672,6 +672,10 @@ def command(args, data: dict) -> int:
     try:
         if workers is not None and not isinstance(executor, executors.LocalProcesses):
             warnings.warn(f"--workers {workers} ignored: the cases run on the workers of {executor.description}")
+        if sweep.base.get("output", {}).get("vtk") or sweep.base.get("output", {}).get("contacts"):
+            warnings.warn(f"{sweep.source}: output.vtk and output.contacts are ignored in a sweep (a case writes "
+                          "only its row, and with sweep.keep_traces its trace): run one case alone for its "
+                          "series, `minidem run FILE --set KEY=VALUE`")
         if not args.quiet:
             print(f"minidem: {sweep.source}: sweep of {len(sweep.cases)} case(s) over {', '.join(sweep.keys)} "
                   f"on {executor.description}")
