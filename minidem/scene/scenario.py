@@ -156,8 +156,8 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
        "the paper's oblique impact. Rebound measures (en, et, x, y1, y2) are reported for it."),
     "run": ("table", (
         Key("dt", "float_or_auto", "auto", "s", "time step, or \"auto\": the smallest of contact_time / "
-            "steps_per_contact, 0.2 x the Rayleigh time and 0.2 x the integrator's stability limit "
-            "(docs/time-step.md; the run's summary names the one that set it)",
+            "steps_per_contact, 0.2 x the Rayleigh time and 0.2 x the integrator's stability limit, which a "
+            "dashpot lowers (docs/time-step.md; the run's summary names the one that set it)",
             low=0.0, low_open=True),
         Key("steps_per_contact", "int", 4000, "-", "steps per normal-impact duration when dt = \"auto\" (at least: the "
             "Rayleigh or stability limit named under dt may make the step smaller)",
