@@ -433,7 +433,8 @@ class Simulation:
         """
         speed = self.characteristic_speed()
         gravity = float(np.linalg.norm(self.scene.gravity))
-        # the kernel's rule (END_VELOCITY = not PAIRS; no closing kick, nothing predicted)
+        # the kernel's rule, END_VELOCITY = not PAIRS, with velocity Verlet's closing half kick
+        # (the doubling is derived for it); symplectic Euler closes with no kick: nothing predicted
         predicted = not self.pairs and integrate.OPENING_KICK[self.scene.integrator] == 0.5
         best, why, damped = math.inf, "no contact possible", False
         for pair, named, r, m, kind in self.contact_kinds():
