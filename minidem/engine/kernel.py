@@ -222,7 +222,7 @@ def touches_at_start(dt, overlap, lives_above, ri, vi, wall_normal, w):
     impulse of it, a first-order error (e of LS at e = 0.5: 1.0e-4 at 4,000 steps per
     contact, halving with the step). Only with END_VELOCITY (a kernel without pairs); at
     dt > 0 never, where the step that ends touching has not carried the contact."""
-    if not END_VELOCITY or dt != 0.0 or overlap < lives_above - _SAME_POINT * ri:
+    if not END_VELOCITY or dt != 0.0 or not lives_above - _SAME_POINT * ri <= overlap <= lives_above:
         return False
     return vi[0] * wall_normal[w, 0] + vi[1] * wall_normal[w, 1] + vi[2] * wall_normal[w, 2] < 0.0
 
@@ -697,8 +697,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
             w = non_negative(near_planes[k])
             overlap = plane_overlap(px, py, pz, ri, wall_point, wall_normal, w)
             lives_above = engaged_above(constants, pair_row[material[i], wall_material[w]])
-            touching_at_start = overlap <= lives_above and touches_at_start(dt, overlap, lives_above, ri, vi,
-                                                                             wall_normal, w)
+            touching_at_start = touches_at_start(dt, overlap, lives_above, ri, vi, wall_normal, w)
             if touching_at_start:
                 overlap = lives_above  # the law sees the touch itself
             previous = wall_overlap[k]

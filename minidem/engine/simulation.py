@@ -445,15 +445,16 @@ class Simulation:
             normal, tangential, zeta = laws.law_stiffness(self.law, pair, named, r, m, overlap)
             # name the overlap only when the stiffness depends on it (not for a linear spring)
             depends = laws.law_stiffness(self.law, pair, named, r, m, 2.0 * overlap)[:2] != (normal, tangential)
-            modes = [("normal", math.sqrt(normal / m), 2.0 * zeta if predicted else zeta)]
+            modes = [("normal", math.sqrt(normal / m), zeta)]
             if self.spin:
                 modes.append(("tangential", math.sqrt(3.5 * tangential / m), 0.0))
             for mode, omega, damping in modes:
-                limit = 2.0 / omega * (math.sqrt(1.0 + damping**2) - damping)
+                acting = 2.0 * damping if predicted else damping
+                limit = 2.0 / omega * (math.sqrt(1.0 + acting**2) - acting)
                 if limit < best:
                     best, damped = limit, damping > 0.0
                     why = (f"{mode} mode of a {kind} contact, omega = {omega:.4g} rad/s"
-                           + (f", damping ratio {damping / 2.0 if predicted else damping:.3g}"
+                           + (f", damping ratio {damping:.3g}"
                               + (", doubled by the end-of-step velocity it reads" if predicted else "")
                               if damping else "")
                            + (f", stiffness at overlap {overlap:.3g} m" if depends else ""))
