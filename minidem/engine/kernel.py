@@ -24,6 +24,8 @@ removed by the compiler, so a single impact pays nothing for pairs or meshes):
     TRACK      contact statistics (first touch, separation, peaks) and the probe are
                recorded (small scenes and runs to separation; serial kernels only: they
                are written by whichever particle has the contact, race-free only there)
+    END_VELOCITY  the law is handed the velocities predicted at the end of the step
+               (a single sphere, and the tracked loop of small scenes; see below)
     OPENING_KICK  the integrator (minidem.engine.integrate): the fraction of the velocity
                update made before the drift, 0.5 velocity Verlet, 1 symplectic Euler
 
@@ -116,6 +118,7 @@ CYLINDERS = True
 MESHES = True
 PARALLEL = False
 TRACK = True
+END_VELOCITY = True
 VECTOR_OFFSETS = (0,)
 OPENING_KICK = 0.5
 # <<< specialisation block
@@ -134,17 +137,17 @@ CLOSING_KICK = 1.0 - OPENING_KICK
 CHECK_DISPLACEMENT = PAIRS or MESHES
 # the law keeps vector history (offsets VECTOR_OFFSETS) that must follow a turning contact
 ROTATE_HISTORY = SPIN and len(VECTOR_OFFSETS) > 0
-# The law is handed the contact's velocity at the end of the step, where the force is
-# applied, predicted from the drift's velocity (half a step old: velocity Verlet) by the
-# closing kick of the last step's force: v + CLOSING_KICK dt F_last / m. The step's
-# displacements are exact with the drift's velocity; a force in proportion to the
-# velocity (a dashpot) is not: with it every damped impact was first order in dt (as in
-# LAMMPS, LIGGGHTS and Yade, which read the half-step velocity); the prediction is off by
-# dt (F_new - F_last) / 2m, second order (docs/time-step.md, "Dashpots"). The last
-# step's force is in the force rows of a kernel without pairs only: a pair kernel's rows
-# sum the reactions during the pass, and keeping the last force beside them would cost
-# 48 bytes a particle.
-END_VELOCITY = not PAIRS
+# END_VELOCITY (simulation.predicts_end_velocity: a single sphere, and the tracked serial
+# loop of small scenes): the law is handed the contact's velocity at the end of the step,
+# where the force is applied, predicted from the drift's velocity (half a step old:
+# velocity Verlet) by the closing kick of the last step's force: v + CLOSING_KICK dt
+# F_last / m, for each sphere of a pair. The step's displacements are exact with the
+# drift's velocity; a force in proportion to the velocity (a dashpot) is not: with it
+# every damped impact was first order in dt (as in LAMMPS, LIGGGHTS and Yade, which read
+# the half-step velocity); the prediction is off by dt (F_new - F_last) / 2m, second
+# order (docs/time-step.md, "Dashpots"). The last step's force is kept in the particles'
+# last_force rows, 48 bytes a particle: the multi-particle path, where that would be a
+# twelfth of a particle's memory, reads the drift's velocity as its peers do.
 # fast-math flags of the particle loops: none (every operation as written; the finite
 # checks must see NaN and infinity)
 FAST = False
@@ -158,7 +161,8 @@ FIRST_CONTACT_TIME, LAST_SEPARATION_TIME, MAX_OVERLAP, PEAK_NORMAL_FORCE, PEAK_T
 # probe slots: the contact of particle 0 with the probed wall, for per-step traces
 PROBE_OVERLAP, PROBE_FN, PROBE_FT, PROBE_DISPLACEMENT = 0, 1, 2, 5  # FT and DISPLACEMENT are 3-vectors
 ZERO = (0.0, 0.0, 0.0)
-NO_CHANGE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+# to_end of a contact whose law reads the drift's velocities: (dv, dw_i, dw_j) all zero
+NO_CHANGE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 # a mesh contact point this close (relative to the radius) to another contact's tangent
 # plane lies on the same surface (round-off of a flat mesh)
 _SAME_POINT = 1e-9
@@ -213,18 +217,44 @@ def engaged_above(constants, row):
 
 
 @numba.njit(cache=True, inline="always")
-def touches_at_start(dt, overlap, lives_above, ri, vi, wall_normal, w):
-    """A sphere touching plane w when the run starts (the zero-length first call, dt = 0:
-    the paper's start, analytic flight's touch), within the round-off of placing it there
-    (_SAME_POINT), and moving into it: in contact from that instant, with the force of
-    the touch itself, as in the reference solution. A linear dashpot's c v at zero
-    overlap is the force's jump there, and a first step without it missed half a step's
-    impulse of it, a first-order error (e of LS at e = 0.5: 1.0e-4 at 4,000 steps per
-    contact, halving with the step). Only with END_VELOCITY (a kernel without pairs); at
-    dt > 0 never, where the step that ends touching has not carried the contact."""
-    if not END_VELOCITY or dt != 0.0 or not lives_above - _SAME_POINT * ri <= overlap <= lives_above:
+def touches_at_start(dt, overlap, lives_above, size, dv, normal):
+    """A sphere touching a plane or another sphere when the run starts (the zero-length
+    first call, dt = 0: the paper's start, analytic flight's touch, Chung and Ooi's
+    pairs), within the round-off of placing it there (_SAME_POINT of ``size``, its
+    radius or the pair's reach), and moving into it (``dv``, its velocity relative to
+    the partner's, against ``normal``, from the partner to it): in contact from that
+    instant, with the force of the touch itself, as in the reference solution. A linear
+    dashpot's c v at zero overlap is the force's jump there, and a first step without it
+    missed half a step's impulse of it, a first-order error (e of LS at e = 0.5: 1.0e-4
+    at 4,000 steps per contact, halving with the step). Only with END_VELOCITY (whose
+    law reads the touch's velocity at the step's end, the velocity of the touch itself
+    here); at dt > 0 never, where the step that ends touching has not carried the
+    contact."""
+    if not END_VELOCITY or dt != 0.0 or not lives_above - _SAME_POINT * size <= overlap <= lives_above:
         return False
-    return vi[0] * wall_normal[w, 0] + vi[1] * wall_normal[w, 1] + vi[2] * wall_normal[w, 2] < 0.0
+    return dv[0] * normal[0] + dv[1] * normal[1] + dv[2] * normal[2] < 0.0
+
+
+@numba.njit(cache=True, inline="always")
+def closing_kick(p, last_force, inverse_mass, inverse_inertia, dt):
+    """(dv, dw) of particle p from the drift's velocities to the end of the step, by
+    the closing kick of the last step's force (END_VELOCITY; the prediction's error is
+    dt (F_new - F_last) / 2m)."""
+    kick_scale = CLOSING_KICK * dt * inverse_mass[p]
+    spin_scale = CLOSING_KICK * dt * inverse_inertia[p] if SPIN else 0.0
+    return (kick_scale * last_force[p, 0], kick_scale * last_force[p, 1], kick_scale * last_force[p, 2],
+            spin_scale * last_force[p, 3], spin_scale * last_force[p, 4], spin_scale * last_force[p, 5])
+
+
+@numba.njit(cache=True, inline="always")
+def pair_touches_at_start(dt, reach, lives_above, separation, vi, velocity, j):
+    """``touches_at_start`` for a pair: ``separation`` = p_i - p_j, vi the velocity of i."""
+    distance = math.sqrt(separation[0] * separation[0] + separation[1] * separation[1]
+                         + separation[2] * separation[2])
+    inverse = 1.0 / distance if distance > 0.0 else 0.0
+    return touches_at_start(dt, reach - distance, lives_above, reach,
+                            (vi[0] - velocity[j, 0], vi[1] - velocity[j, 1], vi[2] - velocity[j, 2]),
+                            (separation[0] * inverse, separation[1] * inverse, separation[2] * inverse))
 
 
 @numba.njit(cache=True, inline="always")
@@ -287,8 +317,9 @@ def contact_response(law, constants_row, history, overlap, previous, normal, pre
     compile takes for scenarios/settle.toml, compiled beside it, see
     minidem.engine.warmup).
 
-    ``to_end`` = (dv, dw) of i, from the drift's velocities here to the step's end
-    (END_VELOCITY; NO_CHANGE for a pair): the law's velocities are taken there.
+    ``to_end`` = (dv, dw_i, dw_j), 3-tuples joined: the change of v_i - v_j and of
+    each spin from the drift's velocities here to the step's end (END_VELOCITY; else
+    NO_CHANGE): the law's velocities are taken there, the increment with the drift's.
 
     A wall is a partner that does not move (v_j = w_j = 0, lever_j = 0); its lever arm
     lever_i is the undeformed radius, as in the paper's rigid-body analysis (eqs 3-8).
@@ -322,7 +353,8 @@ def contact_response(law, constants_row, history, overlap, previous, normal, pre
     if END_VELOCITY:
         normal_velocity, tangential_velocity = pair_contact_velocity(
             vi[0] + to_end[0], vi[1] + to_end[1], vi[2] + to_end[2], wi[0] + to_end[3], wi[1] + to_end[4],
-            wi[2] + to_end[5], vj[0], vj[1], vj[2], wj[0], wj[1], wj[2], lever_i, lever_j, nx, ny, nz)
+            wi[2] + to_end[5], vj[0], vj[1], vj[2], wj[0] + to_end[6], wj[1] + to_end[7], wj[2] + to_end[8],
+            lever_i, lever_j, nx, ny, nz)
     mx, my, mz = 0.0, 0.0, 0.0
     if COUPLES:
         # rolling and twisting resistance: the law sees the spin of i relative to j and
@@ -386,10 +418,11 @@ class _NoAliasCompiler(Compiler):
 
 # Rows of a tile of pair contacts (``evaluate_pair_tile``): what force_range gathers for
 # each touching pair, and what the evaluation gives back
-# (T_DV: v_i - v_j, whose difference is the contact velocity's first operation)
-T_DX, T_DY, T_DZ, T_DISTANCE, T_OVERLAP, T_PREVIOUS, T_RI, T_RJ, T_MI, T_MJ, T_DV, T_WI, T_WJ = (
-    0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 13, 16)
-TILE_INPUTS = 19
+# (T_DV: v_i - v_j, whose difference is the contact velocity's first operation; T_END:
+# the pair's to_end, END_VELOCITY only)
+T_DX, T_DY, T_DZ, T_DISTANCE, T_OVERLAP, T_PREVIOUS, T_RI, T_RJ, T_MI, T_MJ, T_DV, T_WI, T_WJ, T_END = (
+    0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 13, 16, 19)
+TILE_INPUTS = 28 if END_VELOCITY else 19
 R_ON_I, R_DIRECTION, R_COUPLE, R_FINITE = 0, 3, 6, 9
 TILE_RESPONSES = 10
 # contacts a tile holds (a compile-time constant: see history_column), and particles a
@@ -420,6 +453,11 @@ def evaluate_pair_tile(count, rows, constants, tile, tile_history, response, dt,
         if SPIN:
             wi = (tile[T_WI, k], tile[T_WI + 1, k], tile[T_WI + 2, k])
             wj = (tile[T_WJ, k], tile[T_WJ + 1, k], tile[T_WJ + 2, k])
+        to_end = NO_CHANGE
+        if END_VELOCITY:
+            to_end = (tile[T_END, k], tile[T_END + 1, k], tile[T_END + 2, k], tile[T_END + 3, k],
+                      tile[T_END + 4, k], tile[T_END + 5, k], tile[T_END + 6, k], tile[T_END + 7, k],
+                      tile[T_END + 8, k])
         # R* = ri rj / (ri + rj) and m* = mi mj / (mi + mj) through one reciprocal:
         # a division fewer per contact (divisions and square roots share one unit)
         mass_sum = mi + mj
@@ -435,7 +473,7 @@ def evaluate_pair_tile(count, rows, constants, tile, tile_history, response, dt,
         on_i, direction, couple, _, _, _, ok = contact_response(
             law_force, constants[rows[k]], history_column(tile_history, k, TILE_CONTACTS), overlap, tile[T_PREVIOUS, k],
             (nx, ny, nz), ((nx - back * dvx) * seen, (ny - back * dvy) * seen, (nz - back * dvz) * seen), True,
-            (dvx, dvy, dvz), wi, ZERO, wj, NO_CHANGE,
+            (dvx, dvy, dvz), wi, ZERO, wj, to_end,
             ri - 0.5 * overlap, rj - 0.5 * overlap, 0.25 * (overlap - max(tile[T_PREVIOUS, k], 0.0)),
             ri * rj * mass_sum * shared, mi * mj * reach * shared, dt, stats)
         response[R_ON_I, k], response[R_ON_I + 1, k], response[R_ON_I + 2, k] = on_i
@@ -513,7 +551,7 @@ def settle_group(group_first, group_stop, partial_at, first, last, particles, pa
     scenarios/settle.toml on empty caches took 19 s instead of 12.8 s (whole process,
     2-core AMD EPYC). Called once a tile, and without reference counting (``_nrt=False``:
     nothing here allocates), so a call costs next to nothing."""
-    position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
+    position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material, last_force = particles
     (offsets, neighbours, pair_history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use,
      reaction_pending) = pairs
     tile, tile_history, response, tile_entry, tile_row, own, own_count, tile_end = scratch
@@ -609,7 +647,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
     that have a partner in an earlier block (on two threads, about a layer of the pile)
     and those ``defer_finishing`` leaves to it (first_partner -1).
     """
-    position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
+    position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material, last_force = particles
     pair_row, constants = law
     wall_point, wall_normal, wall_material, wall_history, wall_overlap, near_offsets, near_planes = planes
     # a kind of contact the scene does not have comes as an empty tuple (see advance), unpacked
@@ -676,14 +714,9 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
         wi = ZERO
         acc = (mi * gravity[0], mi * gravity[1], mi * gravity[2], 0.0, 0.0, 0.0, 0)
         to_end = NO_CHANGE
-        if END_VELOCITY:
-            # the closing kick of the last step's force, which the rows hold (finish_range)
-            kick_scale = CLOSING_KICK * dt * inverse_mass[i]
-            to_end = (kick_scale * force[i, 0], kick_scale * force[i, 1], kick_scale * force[i, 2], 0.0, 0.0, 0.0)
-            if SPIN:
-                spin_scale = CLOSING_KICK * dt * inverse_inertia[i]
-                to_end = (to_end[0], to_end[1], to_end[2], spin_scale * torque[i, 0], spin_scale * torque[i, 1],
-                          spin_scale * torque[i, 2])
+        if END_VELOCITY:  # i's at its walls (which do not move); a pair's adds j's below
+            kick_i = closing_kick(i, last_force, inverse_mass, inverse_inertia, dt)
+            to_end = (kick_i[0], kick_i[1], kick_i[2], kick_i[3], kick_i[4], kick_i[5], 0.0, 0.0, 0.0)
 
         # Walls. Each kind has its own loop: binding the history rows of different
         # arrays to one variable would cost reference counting per contact (see above).
@@ -697,7 +730,8 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
             w = non_negative(near_planes[k])
             overlap = plane_overlap(px, py, pz, ri, wall_point, wall_normal, w)
             lives_above = engaged_above(constants, pair_row[material[i], wall_material[w]])
-            touching_at_start = touches_at_start(dt, overlap, lives_above, ri, vi, wall_normal, w)
+            touching_at_start = touches_at_start(dt, overlap, lives_above, ri, vi,
+                                                 (wall_normal[w, 0], wall_normal[w, 1], wall_normal[w, 2]))
             if touching_at_start:
                 overlap = lives_above  # the law sees the touch itself
             previous = wall_overlap[k]
@@ -863,6 +897,8 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                     touching = distance_squared < (reach - lives_above) * (reach - lives_above)
                 else:
                     touching = distance_squared < reach * reach
+                if END_VELOCITY and dt == 0.0 and not touching:  # compile-time, then the first call only
+                    touching = pair_touches_at_start(dt, reach, lives_above, (dx, dy, dz), vi, velocity, j)
                 touching_entries[n_touching] = e
                 n_touching += touching
                 previous = pair_overlap[e]
@@ -884,12 +920,16 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 previous = pair_overlap[e]
                 distance = math.sqrt(distance_squared)
                 overlap = reach - distance
+                row = pair_row[material[i], material[j]]
+                lives_above = engaged_above(constants, row)
+                touching_at_start = (END_VELOCITY and dt == 0.0 and overlap <= lives_above
+                                     and pair_touches_at_start(dt, reach, lives_above, (dx, dy, dz), vi, velocity, j))
+                if touching_at_start:
+                    overlap = lives_above  # the law sees the touch itself
                 pair_overlap[e] = overlap
                 if TRACK:
                     note_transitions(stats, time, dt, overlap, previous)
-                row = pair_row[material[i], material[j]]
-                lives_above = engaged_above(constants, row)
-                if overlap <= lives_above:
+                if overlap <= lives_above and not touching_at_start:
                     # touching by the squared distance, not by its root (the distance within
                     # a rounding of the contact's reach): apart, as the next step's first
                     # pass will find it, and ended as there. Evaluated, its overlap 0 would
@@ -927,6 +967,15 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                         angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2])
                     tile[T_WJ, n_tile], tile[T_WJ + 1, n_tile], tile[T_WJ + 2, n_tile] = (
                         angular_velocity[j, 0], angular_velocity[j, 1], angular_velocity[j, 2])
+                if END_VELOCITY:
+                    # j's last force is still its own: j is finished after i (ascending order)
+                    kick_j = closing_kick(j, last_force, inverse_mass, inverse_inertia, dt)
+                    tile[T_END, n_tile], tile[T_END + 1, n_tile], tile[T_END + 2, n_tile] = (
+                        to_end[0] - kick_j[0], to_end[1] - kick_j[1], to_end[2] - kick_j[2])
+                    tile[T_END + 3, n_tile], tile[T_END + 4, n_tile], tile[T_END + 5, n_tile] = (
+                        to_end[3], to_end[4], to_end[5])
+                    tile[T_END + 6, n_tile], tile[T_END + 7, n_tile], tile[T_END + 8, n_tile] = (
+                        kick_j[3], kick_j[4], kick_j[5])
                 for c in range(pair_history.shape[1]):
                     tile_history[c, n_tile] = pair_history[e, c]
                 n_tile += 1
@@ -966,7 +1015,7 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
     with the drift fused, a pair kernel's rows that hold something (reactions, or the own
     force of a particle finish_kick_drift finishes) are zeroed for the next force pass
     instead."""
-    position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
+    position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material, last_force = particles
     sampling, inertia, particle_energy = energy_step
     if PAIRS:  # else an empty tuple (see advance)
         (offsets, neighbours, history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use,
@@ -1020,7 +1069,10 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
             fx, fy, fz = fx + rfx, fy + rfy, fz + rfz
             if SPIN:
                 tx, ty, tz = tx + rtx, ty + rty, tz + rtz
-        if not drift_on or END_VELOCITY:  # END_VELOCITY: read by the next force pass
+        if END_VELOCITY:  # read by the next force pass (closing_kick)
+            last_force[p, 0], last_force[p, 1], last_force[p, 2] = fx, fy, fz
+            last_force[p, 3], last_force[p, 4], last_force[p, 5] = tx, ty, tz
+        if not drift_on or not PAIRS:  # a single sphere's: the run loop's checks read them
             force[p, 0], force[p, 1], force[p, 2] = fx, fy, fz
             torque[p, 0], torque[p, 1], torque[p, 2] = tx, ty, tz
         elif PAIRS and (pending or not own_given):
@@ -1115,7 +1167,7 @@ def kick_drift_one(p, position, velocity, force_on_p, inverse_mass, dt, position
 def kick_drift(particles, dt, position_at_build, half_skin_squared):
     """Opening half kick and drift; returns how many particles have moved more than
     half the skin since the neighbour list was built."""
-    position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
+    position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material, last_force = particles
     moved_too_far = 0
     for p in particle_range(position.shape[0]):
         if SPIN and turns((torque[p, 0], torque[p, 1], torque[p, 2])):
@@ -1123,6 +1175,9 @@ def kick_drift(particles, dt, position_at_build, half_skin_squared):
                       OPENING_KICK * dt)
         moved = kick_drift_one(p, position, velocity, (force[p, 0], force[p, 1], force[p, 2]), inverse_mass, dt,
                                position_at_build, half_skin_squared)
+        if END_VELOCITY:  # the rows hold the totals here (a call's start, a restored state)
+            last_force[p, 0], last_force[p, 1], last_force[p, 2] = force[p, 0], force[p, 1], force[p, 2]
+            last_force[p, 3], last_force[p, 4], last_force[p, 5] = torque[p, 0], torque[p, 1], torque[p, 2]
         if PAIRS:  # zero for the force pass, which sums p's pair reactions there (force_range)
             force[p, 0], force[p, 1], force[p, 2] = 0.0, 0.0, 0.0
             torque[p, 0], torque[p, 1], torque[p, 2] = 0.0, 0.0, 0.0
@@ -1190,7 +1245,7 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
     closing half kick, so the velocities the caller sees are those at the end of a
     step. Either way the same operations in the same order.
     """
-    position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material = particles
+    position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material, last_force = particles
     probe_wall, probe, stats, status = tracking
     sample_steps, inertia, samples, particle_energy, block_sums = energy
     sampled = 0

@@ -99,15 +99,28 @@ def _engine_hash() -> str:
     return engine.hexdigest()
 
 
+def predicts_end_velocity(pairs: bool, track: bool) -> bool:
+    """Whether the kernel hands its law the velocities predicted at the end of the step
+    (kernel END_VELOCITY: every damped contact second order in dt, docs/time-step.md
+    "Dashpots"): a single sphere, and the tracked loop of small scenes (at most
+    PARALLEL_ABOVE particles, or a run to separation). The multi-particle path reads the
+    drift's velocities, as LAMMPS and LIGGGHTS do: the prediction keeps each particle's
+    last force, 48 bytes a particle, a twelfth of its memory there."""
+    return not pairs or track
+
+
 def compile_kernel(entry: laws.RegisteredLaw, spin: bool, pairs: bool = False, cylinders: bool = False,
                    meshes: bool = False, parallel: bool = False, track: bool = True,
-                   integrator: str = "velocity_verlet"):
+                   integrator: str = "velocity_verlet", end_velocity: bool | None = None):
     """Return the kernel module specialised for ``entry.law``, a scene shape and an
     integrator (compiled lazily, cached on disk). Integrators with the same kick split
-    (velocity Verlet and analytic flight) share one kernel."""
+    (velocity Verlet and analytic flight) share one kernel. ``end_velocity`` None: the
+    shape's rule (``predicts_end_velocity``)."""
     track = track and not parallel  # a parallel loop cannot record contact statistics
     flags = dict(zip(KERNEL_FLAGS, (bool(spin), bool(pairs), bool(cylinders), bool(meshes), bool(parallel),
                                     bool(track))))
+    flags["END_VELOCITY"] = (predicts_end_velocity(flags["PAIRS"], flags["TRACK"]) if end_velocity is None
+                             else bool(end_velocity))
     law = entry.law
     # a law with rolling or twisting parts takes the relative spin and returns a couple
     flags["COUPLES"] = bool(law.couples)
@@ -193,9 +206,9 @@ class Simulation:
                  compile: bool = True, notify=None):
         """``kernel_flags`` forces scene-shape flags on (e.g. {"PAIRS": True}) to measure
         what modelling only what a scene needs saves (``minidem bench``); results are
-        the same (but with a dashpot: forcing PAIRS takes away the end-of-step velocity a
-        kernel without pairs hands it, docs/time-step.md "Dashpots"), only the cost
-        differs. ``compile=False`` stops after the constants, the
+        the same, only the cost differs (but with a dashpot: forcing PARALLEL on a small
+        scene takes away the end-of-step velocity its tracked loop hands the law,
+        ``predicts_end_velocity``; {"END_VELOCITY": False} does that alone). ``compile=False`` stops after the constants, the
         time step and the checks of what they imply (validation: a sweep's every case,
         the input fuzz test); such a Simulation cannot run. ``notify(text)``: told what is
         being prepared when a law's prepare() or the kernel's compilation takes more than
@@ -223,6 +236,9 @@ class Simulation:
         # without numba's parallel pipeline, 33 of the 44 s of CPU of the first run of
         # scenarios/settle.toml (kernel flag PARALLEL)
         self.threaded = self.parallel and scene.n_particles >= PARALLEL_MIN_PARTICLES
+        # the law reads the velocities at the end of the step (kernel END_VELOCITY); the
+        # time-step limit of a dashpot depends on it
+        self.end_velocity = predicts_end_velocity(self.pairs, not self.parallel)
         # A scattered scene is stored in space order (minidem.geometry.order): everything
         # from here on, the kernel and the files of its state (with particle_id), sees the
         # stored order; the results (RunResult, the VTK frames) come back in the scenario's.
@@ -262,13 +278,14 @@ class Simulation:
         self.pairs = forced.get("PAIRS", self.pairs)
         self.parallel = forced.get("PARALLEL", self.parallel)
         self.threaded = forced.get("PARALLEL", self.threaded)
+        self.end_velocity = forced.get("END_VELOCITY", predicts_end_velocity(self.pairs, not self.parallel))
         with notice_if_slow(notify, f"compiling (or loading from the cache) the kernel of law '{self.law.name}' "
                              "for this scene"):
             self.kernel = compile_kernel(self.entry, self.spin, self.pairs,
                                          forced.get("CYLINDERS", scene.walls.cylinder_base.shape[0] > 0),
                                          forced.get("MESHES", scene.walls.triangles.shape[0] > 0), self.threaded,
                                          not self.parallel,
-                                         scene.integrator)
+                                         scene.integrator, self.end_velocity)
 
     # -- constants -------------------------------------------------------------
     def _reference_size(self) -> tuple[float, float]:
@@ -419,9 +436,10 @@ class Simulation:
 
         Velocity Verlet and symplectic Euler (the same positions) are stable on a linear
         oscillator of frequency omega for dt < 2/omega, or (2/omega)(sqrt(1 + zeta^2) - zeta)
-        with damping ratio zeta, the dashpot reading the drift's velocity. A kernel without
-        pairs hands it the velocity predicted at the end of the step instead (kernel
-        END_VELOCITY, v + dt a_last / 2 with velocity Verlet's closing half kick), which
+        with damping ratio zeta, the dashpot reading the drift's velocity. A single sphere's
+        kernel, and the tracked loop of a small scene, hand it the velocity predicted at
+        the end of the step instead (kernel END_VELOCITY, v + dt a_last / 2 with velocity
+        Verlet's closing half kick, ``predicts_end_velocity``), which
         makes the last acceleration part of the scheme: its limit is the same with zeta
         doubled (docs/time-step.md). Each contact kind has a normal mode, omega^2 = kn/m*, and
         when it can carry friction a tangential mode in which the contact point moves
@@ -433,9 +451,9 @@ class Simulation:
         """
         speed = self.characteristic_speed()
         gravity = float(np.linalg.norm(self.scene.gravity))
-        # the kernel's rule, END_VELOCITY = not PAIRS, with velocity Verlet's closing half kick
-        # (the doubling is derived for it); symplectic Euler closes with no kick: nothing predicted
-        predicted = not self.pairs and integrate.OPENING_KICK[self.scene.integrator] == 0.5
+        # the kernel's END_VELOCITY with velocity Verlet's closing half kick (the doubling is
+        # derived for it); symplectic Euler closes with no kick: nothing predicted
+        predicted = self.end_velocity and integrate.OPENING_KICK[self.scene.integrator] == 0.5
         best, why, damped = math.inf, "no contact possible", False
         for pair, named, r, m, kind in self.contact_kinds():
             k_hertz = 4.0 / 3.0 * pair.effective_modulus * math.sqrt(r)
@@ -569,6 +587,8 @@ class Simulation:
         order = self.space_order(state.position)
         for name in STATE_ARRAYS:
             setattr(state, name, getattr(state, name)[order])
+        if state.last_force.shape[0]:
+            state.last_force = state.last_force[order]
         stored = self.scene.particle_id
         self.use_order(state, order if stored is None else stored[order])
         state.follow_scene(self.scene)  # the tuple of the arrays just made, whatever the order

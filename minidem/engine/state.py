@@ -145,6 +145,11 @@ class State:
         self.angular_velocity = scene.angular_velocity.copy()
         self.force = np.zeros((n, 3))
         self.torque = np.zeros((n, 3))
+        # the force and torque at the end of the last step, for a kernel that hands its law
+        # the velocity predicted there (kernel END_VELOCITY; else no rows): a pair kernel's
+        # force rows sum reactions during the force pass. Not part of a captured state:
+        # the opening kick after a restore takes it from the force rows, which hold totals
+        self.last_force = np.zeros((n if sim.end_velocity else 0, 6))
         self.follow_scene(scene)
         self.input_radius = sim.input_scene.radius  # the scenario's order (lists_of)
         # the mean distance of consecutive particles when they were last sorted (or at the
@@ -195,7 +200,8 @@ class State:
         the order the scene stores the particles (Simulation.use_order)."""
         self.mass, self.radius, self.particle_id = scene.mass, scene.radius, scene.particle_id
         self.particles = (self.position, self.velocity, self.angular_velocity, self.force, self.torque,
-                          self.mass, 1.0 / self.mass, 1.0 / self.inertia, self.radius, scene.particle_material)
+                          self.mass, 1.0 / self.mass, 1.0 / self.inertia, self.radius, scene.particle_material,
+                          self.last_force)
 
     @property
     def inertia(self) -> np.ndarray:
