@@ -14,6 +14,7 @@ import os
 import signal
 import sys
 import time
+import traceback
 import warnings
 from pathlib import Path
 
@@ -169,6 +170,14 @@ def _say_set_aside(directory: Path, started: float) -> None:
         print(f"minidem: {told}", file=sys.stderr)
 
 
+def _path(text: str) -> Path:
+    """A file or directory option: an empty one (``--out ""``, e.g. an unset shell
+    variable) would be the working directory, which nobody asks for that way."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path: give a file or directory, e.g. out/run1")
+    return Path(text)
+
+
 def _particle_counts(text: str) -> tuple[int, ...]:
     """``--sizes``: comma-separated particle counts, each a whole number >= 2."""
     try:
@@ -312,7 +321,7 @@ def command_docs(args) -> int:
 
         atomic_write(args.write, text)
     else:
-        print(text)
+        print(text, end="")  # the bytes --write writes: `minidem docs > FILE` is the same file
     return EXIT_OK
 
 
@@ -362,7 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="run a scenario file")
     run.add_argument("file", type=Path, help="scenario TOML file")
-    run.add_argument("--out", type=Path, default=None, help="output directory (overrides output.directory)")
+    run.add_argument("--out", type=_path, default=None, help="output directory (overrides output.directory)")
     run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                      help="override a scenario value, dotted keys (repeatable): --set impact.angle_deg=30")
     run.add_argument("--quiet", action="store_true",
@@ -389,11 +398,11 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("law", help="law name (see `minidem laws`)")
     check.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                        help="override the battery's scenario, e.g. --set contact.my_stiffness=1e8")
-    check.add_argument("--out", type=Path, default=None, help="report directory (default out/verify-LAW)")
+    check.add_argument("--out", type=_path, default=None, help="report directory (default out/verify-LAW)")
     check.set_defaults(handler=command_verify)
 
     docs = sub.add_parser("docs", help="print the scenario-file reference (markdown)")
-    docs.add_argument("--write", type=Path, help="write it to this file instead")
+    docs.add_argument("--write", type=_path, help="write it to this file instead")
     docs.set_defaults(handler=command_docs)
 
     draw = sub.add_parser("render", help="draw a run's particle series (OUT/particles.pvd) to a PNG and a GIF")
@@ -401,7 +410,7 @@ def build_parser() -> argparse.ArgumentParser:
     draw.add_argument("--array", default="velocity",
                       help="particle array to colour by (a vector by its magnitude): radius, velocity, "
                       "angular_velocity, force, particle_id, material_id (default velocity)")
-    draw.add_argument("--out", type=Path, default=None, metavar="FILE.png", help="the picture (default OUT/render.png)")
+    draw.add_argument("--out", type=_path, default=None, metavar="FILE.png", help="the picture (default OUT/render.png)")
     draw.add_argument("--frame", type=int, default=-1, help="frame of the series drawn to the PNG (default -1: the last)")
     draw.add_argument("--animation", default=None, metavar="FILE.gif",
                       help="the series as a GIF (default OUT/render.gif when it has more than one frame; '' for none)")
@@ -428,7 +437,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--steps", type=_run_steps, default=None, metavar="STEPS",
                        help="multi-particle sections: steps of every run (default settle.md's: 10,000, fewer "
                             "at scale; memory-order: 400); the table says how many")
-    bench.add_argument("--docs", type=Path, default=None, help="docs directory to write (default: the project's)")
+    bench.add_argument("--docs", type=_path, default=None, help="docs directory to write (default: the project's)")
     bench.set_defaults(handler=command_bench)
     return parser
 
@@ -487,13 +496,13 @@ def main(argv=None) -> int:
         try:
             return args.handler(args)
         except (ScenarioError, LawError) as exc:
-            if args.debug:
-                raise
+            if args.debug:  # the traceback, and the same exit code as without it
+                traceback.print_exc()
             print(f"minidem: error: {exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
         except (RunFailure, OutputError) as exc:
             if args.debug:
-                raise
+                traceback.print_exc()
             print(f"minidem: run failed: {exc}", file=sys.stderr)
             return EXIT_FAILURE
         except KeyboardInterrupt:
@@ -506,9 +515,11 @@ def main(argv=None) -> int:
                 print("minidem: interrupted", file=sys.stderr)
                 return 130
             if args.debug:
-                raise
-            print(f"minidem: internal error: {type(exc).__name__}: {exc} (rerun with --debug for the traceback)",
-                  file=sys.stderr)
+                traceback.print_exc()
+                print(f"minidem: internal error: {type(exc).__name__}: {exc}", file=sys.stderr)
+            else:
+                print(f"minidem: internal error: {type(exc).__name__}: {exc} (rerun with --debug for the traceback)",
+                      file=sys.stderr)
             return EXIT_FAILURE
         finally:
             if args.handler is command_run:  # a prestarted helper no job was given to

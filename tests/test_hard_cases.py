@@ -542,7 +542,7 @@ def test_a_scene_that_gains_energy_is_not_silent(tmp_path):
     gained = types.SimpleNamespace(scene=scene, energy=np.array([[0.0, 1e-3], [0.01, 1.5e-3], [0.02, 1.2e-3]]),
                                    gravity_work_max=0.0, supply_budget=0.0)
     warning = analysis.energy_budget_warning(gained)
-    assert "1.5 times what the scene can supply" in warning and "time step is too large" in warning
+    assert "50 % more than what the scene can supply" in warning and "time step is too large" in warning
     calm = analysis.summary(simulation.Simulation(scenario.load_scene(
         path, ['run.dt="auto"', "run.end_time=0.05"], "-")).run())
     assert calm["warnings"] == []

@@ -14,6 +14,8 @@ import re
 import subprocess
 import sys
 from contextlib import redirect_stdout
+from pathlib import Path
+from xml.etree import ElementTree
 
 import numpy as np
 import pytest
@@ -169,10 +171,36 @@ def test_minidem_render_writes_a_png_and_a_gif_of_the_series(cradle_run, tmp_pat
     assert Image.open(tmp_path / "cradle.gif").n_frames == len(minidem.open_results(out).series)
     bad = run_cli("render", out, "--array", "speed")
     assert bad.returncode == 2 and "not a particle array; arrays: radius, velocity" in bad.stderr
+    # refused before anything is drawn (review: --fps 0 drew the PNG for 30 s, then died
+    # dividing by zero, an internal error)
+    for fps in ("0", "-5", "nan"):
+        slow = run_cli("render", out, "--fps", fps, "--out", tmp_path / f"fps{fps}.png")
+        assert slow.returncode == 2 and "expected frames per second in (0, 1000]" in slow.stderr, slow.stderr
+        assert not (tmp_path / f"fps{fps}.png").exists()
     impact = run_cli("run", OBLIQUE, "--out", tmp_path / "impact", "--quiet")
     assert impact.returncode == 0
     nothing = run_cli("render", tmp_path / "impact")
     assert nothing.returncode == 2 and "no particle series (particles.pvd)" in nothing.stderr
+
+
+def test_a_shorter_run_into_the_same_directory_leaves_only_its_own_frames(cradle_run, tmp_path):
+    # review: a second, shorter run into a used directory listed its 3 frames in
+    # particles.pvd and left the first run's later .vtu files beside them; ParaView's file
+    # dialog groups every particles_*.vtu into one series, mixing the two runs
+    import shutil
+
+    out = tmp_path / "again"
+    shutil.copytree(cradle_run[0], out)
+    before = sorted(p.name for p in out.glob("particles_*.vtu"))
+    assert len(before) > 5
+    (out / "notes_000001.vtu").write_text("a file of the user's: kept")
+    minidem.run(CRADLE, {"run.end_time": 4e-5, "output.interval": 2e-5}, out=out)
+    listed = [Path(entry.get("file")).name for entry in
+              ElementTree.parse(out / "particles.pvd").getroot().iter("DataSet")]
+    assert sorted(p.name for p in out.glob("particles_*.vtu")) == sorted(listed) and len(listed) < len(before)
+    assert (out / "notes_000001.vtu").read_text() == "a file of the user's: kept"
+    # a resumed run continues its own series instead, every frame kept (test_faults.py,
+    # the killed settle run resumed)
 
 
 def _python_blocks(text: str) -> list[str]:

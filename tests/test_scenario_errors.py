@@ -225,6 +225,9 @@ def test_a_real_process_exits_2_without_traceback_and_debug_shows_one(tmp_path):
     assert "Traceback" not in done.stderr
     debug = run_cli("--debug", "run", path)
     assert "Traceback" in debug.stderr and "ScenarioError" in debug.stderr
+    # the same exit code with the traceback: a script's check of it does not change with
+    # the flag (review: --debug turned bad input's 2 into 1)
+    assert debug.returncode == 2 and debug.stderr.rstrip().endswith(done.stderr.rstrip())
 
 
 def test_bad_set_syntax_in_a_real_process():
@@ -360,6 +363,19 @@ def test_unusable_output_directory_is_refused_up_front(out, reason, tmp_path, ca
     assert message == (f"minidem: error: {OBLIQUE}: --out '{out}': cannot use it as the output directory: "
                        f"{reason}; give a directory that can be created and written in\n")
     assert (tmp_path / "afile").read_text() == "not a directory\n"
+
+
+def test_an_empty_output_path_is_refused_not_taken_for_the_working_directory(tmp_path, capsys, monkeypatch,
+                                                                             no_compile):
+    # review: --out "" (an unset shell variable) wrote summary.json into the working
+    # directory; argparse refuses it with exit 2, naming the option
+    monkeypatch.chdir(tmp_path)
+    for argv in (["run", str(OBLIQUE), "--out", ""], ["verify", "hm", "--out", " "], ["render", "x", "--out", ""]):
+        with pytest.raises(SystemExit) as exit_:
+            cli.main(argv)
+        assert exit_.value.code == 2
+        assert "argument --out: an empty path" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_unusable_output_directory_from_the_scenario_or_a_sweep_is_named(tmp_path, capsys, monkeypatch, no_compile):

@@ -131,7 +131,10 @@ def energy_budget_warning(result: RunResult) -> str | None:
     budget = initial + max(result.gravity_work_max, 0.0) + result.supply_budget
     if peak <= budget * (1.0 + 1e-3):
         return None
-    times = (f"{peak / budget:.3g} times" if budget > 0.0 else "more than")
+    # below twice, the excess itself ("1.09 J, 1 times what the scene can supply" read as none)
+    ratio = peak / budget if budget > 0.0 else math.inf
+    times = (f"{100.0 * (ratio - 1.0):.3g} % more than" if ratio < 2.0 else
+             f"{ratio:.3g} times" if math.isfinite(ratio) else "more than")
     what = ("the initial kinetic energy plus the work of gravity plus what adhesion can supply, "
             f"{result.supply_budget:.3g} J" if result.supply_budget else
             "the initial kinetic energy plus the work of gravity; contacts cannot add energy")

@@ -16,6 +16,7 @@ prints no X error.
 
 from __future__ import annotations
 
+import math
 import os
 import sys
 from pathlib import Path
@@ -148,6 +149,9 @@ def render(directory: str | Path, array: str = "velocity", png: str | Path | Non
 
     from minidem import files
 
+    # checked before any work: a GIF frame lasts a whole number of milliseconds, 1000/fps
+    if not (math.isfinite(fps) and 0.0 < fps <= 1000.0):
+        raise RenderError(f"--fps {fps:g}: expected frames per second in (0, 1000], e.g. 10")
     try:
         output = Output(directory)
     except MinidemError as exc:

@@ -30,6 +30,7 @@ from __future__ import annotations
 import base64
 import itertools
 import os
+import re
 import struct
 import threading
 from collections.abc import Iterable, Mapping, Sequence
@@ -682,6 +683,20 @@ class VTKSeriesWriter:
         return _unstructured_grid_chunks(pos, connectivity, offsets, types, [], cell_arrays,
                                          self._mode, time_s)
 
+    def remove_earlier_frames(self) -> int:
+        """Delete the frame files of this series' name (``{prefix}_NNNNNN.vtu``, and its
+        contact frames) that an earlier run left in the directory: a shorter run writes
+        fewer, and ParaView's file dialog groups every ``particles_*.vtu`` into one series,
+        the two runs' frames mixed. Before the first frame of a run that does not continue
+        a series; returns how many were removed."""
+        pattern = re.compile(rf"{re.escape(self.prefix)}(_contacts)?_\d{{6}}\.vtu")
+        removed = 0
+        for entry in os.scandir(self.directory):
+            if pattern.fullmatch(entry.name) and entry.is_file(follow_symlinks=False):
+                os.remove(entry.path)
+                removed += 1
+        return removed
+
     def write_walls(self, meshes: Sequence[tuple], name: str = "walls", tables: Sequence[int] | None = None) -> str:
         """Write wall surfaces once, as ``{directory}/{name}.vtu``; returns the path.
 
@@ -825,8 +840,14 @@ class SimulationFrames:
         meshes = display_meshes(scene.walls, lower, upper)
         self.walls_path = self.writer.write_walls(meshes, tables=scene.walls.display_tables()) if meshes else None
         self.frames = 0
+        self.continues = False  # a resumed run's series (restore): its earlier frames are its own
 
     def __call__(self, time_s, state) -> None:
+        if self.frames == 0 and not self.continues:
+            self.writer.remove_earlier_frames()
+        self.write(time_s, state)
+
+    def write(self, time_s, state) -> None:
         pairs, normal_force = state.contact_pairs() if self.scene.vtk_contacts else (None, None)
         stored = self.simulation.scene
         if pairs is not None and stored.particle_id is not None:
@@ -846,6 +867,7 @@ class SimulationFrames:
         """Continue the series of a checkpoint (``frames`` frames written)."""
         self.writer.restore(saved["particles"][:frames], saved["contacts"][:frames])
         self.frames = frames
+        self.continues = True
 
     def close(self) -> None:
         self.writer.close()

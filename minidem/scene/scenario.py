@@ -729,7 +729,13 @@ def _check_kind_keys(table: Any, section: str, kind: Any, where: str, errors: _E
 def load_scene(path: str | Path, overrides: list[str] = (), output_directory: str | Path | None = None,
                while_checking=None) -> Scene:
     data = apply_overrides(read_toml(path), list(overrides))
-    return build_scene(data, str(path), output_directory, while_checking)
+    try:
+        return build_scene(data, str(path), output_directory, while_checking)
+    except ScenarioError as exc:
+        if not overrides:
+            raise
+        # a value from the command line is not in the file the message names: say so
+        raise ScenarioError(f"{exc}\n  (the file's values with {' '.join(f'--set {o}' for o in overrides)})") from None
 
 
 def _vtk_on(output: dict, impact, source: str) -> bool:
