@@ -203,6 +203,17 @@ def test_a_shorter_run_into_the_same_directory_leaves_only_its_own_frames(cradle
     # the killed settle run resumed)
 
 
+def test_an_impact_with_vtk_on_has_frames_inside_its_contact(tmp_path):
+    # review: the default interval, run.end_time / 50, is 2 contact times for a run to
+    # separation (whose end_time is a cap of 100 contact times): t = 0 and the end only.
+    # Now 1/50 of the flight and one contact time: ~50 frames, most inside the contact
+    result = minidem.run(OBLIQUE, {"output.vtk": True}, out=tmp_path)
+    times = minidem.open_results(tmp_path).series.times
+    # the paper's start: in contact from t = 0 to the separation
+    inside = [t for t in times if 0.0 < t < result.summary["contact_duration_s"]]
+    assert len(inside) >= 40, times
+
+
 def _python_blocks(text: str) -> list[str]:
     return re.findall(r"```python\n(.*?)```", text, re.S)
 

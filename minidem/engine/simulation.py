@@ -717,7 +717,14 @@ class Simulation:
         scene = self.scene
         if not scene.vtk:
             return None
-        return scene.output_interval if scene.output_interval is not None else end_time / 50.0
+        if scene.output_interval is not None:
+            return scene.output_interval
+        expected = end_time
+        if scene.stop == "separation" and scene.end_time is None and math.isfinite(self.reference_contact_time):
+            # the run ends at the separation, not at its cap of 100 contact times: a frame
+            # every 2 contact times had none inside the contact (review)
+            expected = min(end_time, max(self.start_time, self.flight_time) + self.reference_contact_time)
+        return expected / 50.0
 
     def _write_flight_frames(self, state: State, count: int, interval: float, on_frame) -> None:
         """Frames at t = k interval, k < count, of the free flight an analytic-flight run

@@ -192,7 +192,8 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
         Key("vtk", "bool", None, "", "write a ParaView time series (particles.pvd, walls.vtu); default: "
             "on for scenes without [impact]"),
         Key("interval", "float", None, "s", "simulated time between VTK frames (t = 0 and the final state are always frames); "
-            "default: run.end_time / 50",
+            "default: 1/50 of the run's expected length, run.end_time, or for a run to separation the flight to the "
+            "first touch and one contact time",
             low=0.0, low_open=True),
         Key("contacts", "bool", False, "", "also write the contact network (particles_contacts.pvd: lines "
             "between touching particles with cell array normal_force)"),
