@@ -439,6 +439,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "at scale; memory-order: 400); the table says how many")
     bench.add_argument("--docs", type=_path, default=None, help="docs directory to write (default: the project's)")
     bench.set_defaults(handler=command_bench)
+    parser.commands = sub.choices  # name -> the command's parser (main: its usage on an unknown option)
     return parser
 
 
@@ -478,7 +479,9 @@ def main(argv=None) -> int:
     if argv is None and not isinstance(sys.stdout, _PipeClosedSink):  # the console command itself
         sys.stdout = _PipeClosedSink(sys.stdout)
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # the command's own usage, not the top level's (exit 2)
+        parser.commands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
     from minidem.engine import warmup
 
     if args.handler is command_run:

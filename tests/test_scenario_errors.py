@@ -230,6 +230,18 @@ def test_a_real_process_exits_2_without_traceback_and_debug_shows_one(tmp_path):
     assert debug.returncode == 2 and debug.stderr.rstrip().endswith(done.stderr.rstrip())
 
 
+def test_an_unknown_option_gets_the_commands_usage_and_a_missing_parameter_says_how_to_give_it(tmp_path):
+    # review: `minidem run FILE --frobnicate` printed the top-level usage; `minidem verify
+    # wb` said the law needs 'restitution' without saying where it goes
+    done = run_cli("run", OBLIQUE, "--frobnicate")
+    assert done.returncode == 2 and "usage: minidem run" in done.stderr
+    assert "unrecognized arguments: --frobnicate" in done.stderr
+    path = tmp_path / "wb.toml"
+    path.write_text(edit("friction = 0.1", ""))
+    with pytest.raises(scenario.ScenarioError, match=r"needs parameter .*: give it in \[contact\], or with --set contact\."):
+        scenario.load_scene(path)
+
+
 def test_bad_set_syntax_in_a_real_process():
     done = run_cli("run", OBLIQUE, "--set", "contact.law")
     assert done.returncode == 2

@@ -271,7 +271,8 @@ class ContactLaw:
         for p in self.parameters:
             value = given.get(p.name, p.default)
             if value is None and p.required:
-                errors.append(f"law '{self.name}' needs parameter '{p.name}' ({p.description}, unit {p.unit or '-'}, bounds {p.bounds_text()})")
+                errors.append(f"law '{self.name}' needs parameter '{p.name}' ({p.description}, unit {p.unit or '-'}, "
+                              f"bounds {p.bounds_text()}): give it in [contact], or with --set contact.{p.name}=VALUE")
                 continue
             if value is None:
                 values[p.name] = None

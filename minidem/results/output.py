@@ -116,7 +116,9 @@ class Output:
     def __init__(self, directory: str | Path):
         self.directory = Path(directory)
         if not self.directory.is_dir():
-            raise MinidemError(f"{self.directory}: no such output directory")
+            raise MinidemError(f"{self.directory}: " + ("a file, not an output directory (give the directory a run "
+                                                        "wrote into)" if self.directory.exists()
+                                                        else "no such output directory"))
         if not any((self.directory / name).exists() for name in
                    ("summary.json", "final_state.npz", "sweep.csv", "particles.pvd", "last_good.npz")):
             raise MinidemError(f"{self.directory}: not a minidem output directory (none of summary.json, "
