@@ -101,6 +101,31 @@ def test_a_force_writing_past_its_declared_history_is_caught(tmp_path, monkeypat
     assert not (tmp_path / "report" / "verify.png").exists()
 
 
+def test_a_run_of_a_plugin_law_writing_past_its_history_is_refused_before_it_steps(tmp_path, monkeypatch, capsys):
+    """The same check guards `minidem run` (Simulation.check_history_bounds), for a law
+    or part from a plugin, once per kernel: a plugin author who never ran `minidem
+    verify` gets exit 2 naming the law, not another contact's history overwritten (or
+    the heap: the process died of it in the verify battery before the check existed)."""
+    import importlib
+
+    from conftest import OBLIQUE
+    from minidem import cli
+    from minidem.contact import laws
+    from minidem.engine.run_loop import RunLoop
+
+    (tmp_path / "fake_overrun_plugin.py").write_text(OVERRUN_PLUGIN)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    registry = laws.load_registry(extra_plugins=(importlib.import_module("fake_overrun_plugin"),))
+    monkeypatch.setattr(laws, "_REGISTRY", registry)
+    stepped = []
+    monkeypatch.setattr(RunLoop, "first_call", lambda loop: stepped.append(loop))
+    code = cli.main(["run", str(OBLIQUE), "--set", 'contact.law="fake_overrun"', "--out", str(tmp_path / "out")])
+    assert code == 2 and not stepped
+    err = capsys.readouterr().err
+    assert "law 'fake_overrun' from plugin 'fake_overrun_plugin'" in err and "writes past the history it declares" in err
+    assert "wrote history[1]; the law declares 1 slot(s)" in err
+
+
 SPRING_PLUGIN = '''
 import numba
 

@@ -601,3 +601,56 @@ def law_stiffness(law: ContactLaw, pair: ContactPair, constants: Mapping[str, fl
                            "(kn N/m, kt N/m, damping ratio), three finite numbers >= 0")
         return float(values[0]), float(values[1]), float(values[2])
     return (*hertz_mindlin_stiffness(pair, effective_radius, normal_overlap), 0.0)
+
+
+# a value no law writes by accident, in the guard slots past a history row
+_GUARD_VALUE = 1.2345678e-300
+
+
+def history_overrun(law: ContactLaw, constants_row, effective_radius: float, effective_mass: float,
+                    contact_time: float, speed: float = 5.0) -> str | None:
+    """Whether the law's force writes past the history slots it declares: None, or
+    where it did. numba checks no array bounds, and in the engine a write past them
+    lands in the next contact's row (or past the array, a corrupted heap) unnoticed.
+    The force is called directly (its wall copy, ``force_alone``, where there is one),
+    on a history row followed by guard values, along an oblique loading-unloading path
+    of ``contact_time`` at ``speed`` whose tangential velocity turns and reverses (every
+    branch a tangential law has), and a relative spin that turns too (rolling and
+    twisting parts). ``minidem verify``'s first check, and ``minidem run``'s for a law
+    or part from a plugin (Simulation.check_history_bounds). A force that fails to
+    compile raises numba's error (the caller reports it); one that raises on these
+    made-up values is not judged (None: a run reports what it raises there)."""
+    import numpy as np
+    from numba.core.errors import NumbaError
+
+    size = law.history_size
+    duration = contact_time if math.isfinite(contact_time) and contact_time > 0.0 else 1e-4
+    normal_speed, tangential_speed = speed * math.cos(math.radians(30.0)), speed * math.sin(math.radians(30.0))
+    peak = normal_speed * duration / math.pi  # the overlap's scale (exact for a linear spring)
+    buffer = np.full(size + 16, _GUARD_VALUE)
+    buffer[:size] = 0.0
+    history, steps, previous = buffer[:size], 200, 0.0
+    dt = duration / steps
+    force = law.force if law.force_alone is None else law.force_alone
+    for step in range(1, steps):
+        phase = math.pi * step / steps
+        overlap = peak * math.sin(phase)
+        velocity = (tangential_speed * math.cos(2.0 * phase), 0.3 * tangential_speed * math.sin(3.0 * phase), 0.0)
+        arguments = (constants_row, effective_radius, effective_mass, overlap, overlap - previous,
+                     normal_speed * math.cos(phase), (velocity[0] * dt, velocity[1] * dt, velocity[2] * dt),
+                     velocity, history)
+        if law.couples:
+            spin = (40.0 * math.cos(2.0 * phase), 20.0 * math.sin(3.0 * phase), 30.0 * math.cos(phase))
+            arguments += (spin, (0.0, 0.0, 1.0), dt)
+        try:
+            force(*arguments)
+        except NumbaError:
+            raise  # does not compile: the caller reports it
+        except Exception:  # noqa: BLE001 - raised on these made-up values: a run reports its own
+            return None
+        previous = overlap
+        written = np.flatnonzero(buffer[size:] != _GUARD_VALUE)
+        if written.size:
+            return (f"call {step} of {steps - 1}: the force wrote history[{size + int(written[0])}]; the law "
+                    f"declares {size} slot(s)")
+    return None

@@ -314,6 +314,7 @@ class RunLoop:
             with compiling():
                 with helper.law_compiled(declarations.called_force(sim.law)):
                     self.compile_kernel()
+                sim.check_history_bounds()  # a plugin's law, once per kernel
                 helper.wait()
                 if self.resume_from is None and (sim.pairs or meshes):
                     sim.rebuild(state)

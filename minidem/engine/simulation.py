@@ -374,6 +374,31 @@ class Simulation:
             self.supply_budget = per_contact * (6 * n * (n > 1) + n * walls)
 
     # -- time step ---------------------------------------------------------------
+    def check_history_bounds(self) -> None:
+        """A law, or a combination with a part, from a plugin other than minidem is run
+        once through ``laws.history_overrun`` before its first run with this kernel: numba
+        checks no array bounds, and a force writing past the history slots it declares
+        would overwrite the next contact's history, or the heap, unnoticed (``minidem
+        verify``'s first check, made for every plugin author who skips it). Its verdict
+        is kept beside the kernel in the cache, whose name changes with the law's code:
+        a few milliseconds, once. Raises LawError (exit 2) naming the law and the slot."""
+        if self.entry.distribution == "minidem" or not hasattr(self.kernel, "__name__"):
+            return
+        marker = codecache.cache_directory() / f"{self.kernel.__name__}.history-checked"
+        if marker.exists():
+            return
+        material = int(self.scene.particle_material[0])
+        row = self.constants[self.pair_row[material, material]]
+        where = laws.history_overrun(self.law, row, float(self.scene.radius[0]), float(self.scene.mass[0]),
+                                     self.reference_contact_time, self.characteristic_speed())
+        if where is not None:
+            raise laws.LawError(
+                f"law '{self.law.name}' from plugin '{self.entry.plugin}' ({self.entry.distribution}): its force "
+                f"writes past the history it declares ({where}), which in a run overwrites other contacts' history "
+                "(numba checks no bounds): declare a HistorySlot for every value it keeps "
+                "(docs/writing-a-contact-law.md)")
+        marker.write_text(f"{self.law.name}: history_overrun passed\n")
+
     def characteristic_speed(self) -> float:
         scene = self.scene
         if scene.impact is not None:

@@ -183,50 +183,23 @@ class Battery:
                       "the law's own contact_time (Hertz eq 13 when it declares none)")]
 
     def history_bounds(self) -> list[Check]:
-        """The force function writes only the history slots the law declares. numba does
-        not check array bounds: a write past them would land in the next contact's row
-        (or past the array) unnoticed. The force is called directly, on a history row
-        followed by guard values, along an oblique loading-unloading path whose
-        tangential velocity turns and reverses (every branch a tangential law has)."""
-        size = self.law.history_size
+        """The force function writes only the history slots the law declares
+        (``laws.history_overrun``: numba does not check array bounds, and a write past
+        them would land in the next contact's row, or past the array, unnoticed)."""
         scene = scenario.build_scene(copy.deepcopy(self.base), source=f"<verify {self.law.name}>",
                                      output_directory="-")
         radius, mass = float(scene.radius[0]), float(scene.mass[0])
         pair = laws.ContactPair.from_materials(scene.materials[0], scene.materials[0], radius, mass, 5.0)
         row, constants = self.law.prepared_constants(pair, scene.law_parameters)
         duration = laws.law_contact_time(self.law, pair, constants, radius, mass, 5.0)
-        duration = duration if math.isfinite(duration) else 1e-4
-        normal_speed, tangential_speed = 5.0 * math.cos(math.radians(30.0)), 5.0 * math.sin(math.radians(30.0))
-        peak = normal_speed * duration / math.pi  # the overlap's scale (exact for a linear spring)
-        guards = 16
-        buffer = np.full(size + guards, 1.2345678e-300)  # a value no law writes by accident
-        buffer[:size] = 0.0
-        history, steps, previous = buffer[:size], 200, 0.0
-        dt = duration / steps
-        for step in range(1, steps):
-            phase = math.pi * step / steps
-            overlap = peak * math.sin(phase)
-            velocity = (tangential_speed * math.cos(2.0 * phase), 0.3 * tangential_speed * math.sin(3.0 * phase), 0.0)
-            arguments = (row, radius, mass, overlap, overlap - previous, normal_speed * math.cos(phase),
-                         (velocity[0] * dt, velocity[1] * dt, velocity[2] * dt), velocity, history)
-            if self.law.couples:  # rolling and twisting: a relative spin that turns and reverses too
-                spin = (40.0 * math.cos(2.0 * phase), 20.0 * math.sin(3.0 * phase), 30.0 * math.cos(phase))
-                arguments += (spin, (0.0, 0.0, 1.0), dt)
-            try:
-                # the copy the kernel calls at walls, where there is one: its flags
-                (self.law.force if self.law.force_alone is None else self.law.force_alone)(*arguments)
-            except numba.core.errors.NumbaError as exc:  # the force does not compile: say where, exit 2
-                raise laws.LawError(f"law '{self.law.name}' from plugin '{self.entry.plugin}' "
-                                    f"({self.entry.distribution}): {law_signature.force_problem(self.law, exc)}") from exc
-            previous = overlap
-            written = np.flatnonzero(buffer[size:] != 1.2345678e-300)
-            if written.size:
-                return [Check("history stays in its declared slots", False,
-                              f"step {step}: the force wrote history[{size + int(written[0])}]; the law declares "
-                              f"{size} slot(s)", f"writes only history[0:{size}]",
-                              "the law's HistorySlot declarations (docs/writing-a-contact-law.md)")]
-        return [Check("history stays in its declared slots", True,
-                      f"{steps - 1} calls along an oblique load-unload path", f"writes only history[0:{size}]",
+        size = self.law.history_size
+        try:
+            overrun = laws.history_overrun(self.law, row, radius, mass, duration)
+        except numba.core.errors.NumbaError as exc:  # the force does not compile: say where, exit 2
+            raise laws.LawError(f"law '{self.law.name}' from plugin '{self.entry.plugin}' "
+                                f"({self.entry.distribution}): {law_signature.force_problem(self.law, exc)}") from exc
+        return [Check("history stays in its declared slots", overrun is None,
+                      overrun or "199 calls along an oblique load-unload path", f"writes only history[0:{size}]",
                       "the law's HistorySlot declarations (docs/writing-a-contact-law.md)")]
 
     def adhesion(self) -> list[Check]:
