@@ -349,7 +349,8 @@ def command_render(args) -> int:
     from minidem.results import render
 
     try:
-        written = render.render(args.directory, args.array, args.out, args.animation, args.frame, args.fps)
+        written = render.render(args.directory, args.array, args.out, args.animation, args.frame, args.fps,
+                                notify=lambda text: print(f"minidem: {text}", file=sys.stderr, flush=True))
     except render.NoRenderWindow as exc:
         print(f"minidem: render failed: {exc}", file=sys.stderr)
         return EXIT_FAILURE

@@ -164,6 +164,8 @@ def test_minidem_render_writes_a_png_and_a_gif_of_the_series(cradle_run, tmp_pat
                    "--animation", tmp_path / "cradle.gif")
     assert done.returncode == 0, done.stderr
     assert "bad X server" not in done.stderr  # off-screen through EGL, no X attempted
+    # one line says what is read and drawn before the wait (review: 30 s of silence)
+    assert f"reading and drawing {len(minidem.open_results(out).series)} frame(s)" in done.stderr
     picture = np.asarray(Image.open(tmp_path / "cradle.png").convert("RGB"))
     assert picture.shape == (768, 1024, 3)
     # the five balls (and the colour bar) are drawn on the white background

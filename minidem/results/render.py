@@ -140,11 +140,12 @@ class _Scene:
 
 def render(directory: str | Path, array: str = "velocity", png: str | Path | None = None,
            animation: str | Path | None = None, frame: int = -1, fps: float = 10.0, max_frames: int = 200,
-           window=WINDOW) -> list[Path]:
+           window=WINDOW, notify=None) -> list[Path]:
     """Draw the particle series in ``directory``: frame ``frame`` to ``png`` (default
     DIR/render.png) and, when the series has more than one frame, every frame (at most
     ``max_frames``, evenly picked) to the GIF ``animation`` (default DIR/render.gif;
-    "" for none). Returns the files written."""
+    "" for none). Returns the files written. ``notify(text)``: told, in one line, what
+    is being read and drawn (the CLI prints it: a long series takes tens of seconds)."""
     from PIL import Image
 
     from minidem import files
@@ -167,6 +168,9 @@ def render(directory: str | Path, array: str = "velocity", png: str | Path | Non
     written = []
     picked = (np.unique(np.linspace(0, len(series) - 1, min(len(series), max_frames)).round().astype(int))
               if len(series) > 1 and animation != "" else np.array([], dtype=int))
+    if notify is not None:
+        notify(f"reading and drawing {len(picked) or 1} frame(s) of {output.directory / 'particles.pvd'}"
+               + (f" (the GIF: {len(picked)} of {len(series)})" if len(picked) else ""))
     meshes = {k: series[int(k)] for k in set(picked.tolist()) | {frame % len(series)}}
     scene = _Scene(output.walls, list(meshes.values()), array, window)
     try:
