@@ -82,6 +82,25 @@ def test_head_on_collision_equals_the_reduced_wall_impact():
     assert elastic.last_separation_time - elastic.first_contact_time == pytest.approx(tc, rel=2e-3)
 
 
+def test_a_pair_touching_at_the_start_that_parts_at_once_is_ended():
+    # review: two spheres 2e-14 m apart (within the round-off of touch, 1e-9 of R_i + R_j)
+    # and closing count as touching at t = 0 (touches_at_start); at 2e-9 m/s they are still
+    # apart a step later, and the contact must end there: its overlap was stored at exactly
+    # 0, and the end test read previous > 0, keeping its history and stored reaction (the
+    # plane's test is >= for the same case)
+    data = two_spheres("ls", 0.0, {"restitution": 0.5, "friction": 0.1, "calibration_speed": 1.0}, dt=1e-6)
+    for sphere, sign in zip(data["particles"], (-1.0, 1.0)):
+        sphere["position"][0] = sign * (RADIUS + 1e-14)
+        sphere["velocity"] = [-sign * 1e-9, 0.0, 0.0]
+    data["run"].update(stop="time", end_time=3e-6)
+    sim = simulation.Simulation(scenario.build_scene(data))
+    result = sim.run()
+    # counted at the start: its dashpot's c v at zero overlap slowed the approach
+    assert result.velocity[0, 0] < 1e-9
+    offsets, partners, history, overlap, reaction, slot, reverse, in_use = sim.state.pairs[:8]
+    assert overlap[0] < 0.0 and not history.any() and not in_use.any() and not reaction.any()
+
+
 @pytest.mark.parametrize("law, within", [("hm", 1e-4), ("ls", 1e-5)])
 def test_damped_head_on_collision_equals_the_reduced_wall_impact(law, within):
     # With a dashpot (e = 0.7) too: both laws are handed the velocity predicted at the

@@ -608,9 +608,9 @@ _GUARD_VALUE = 1.2345678e-300
 
 
 def history_overrun(law: ContactLaw, constants_row, effective_radius: float, effective_mass: float,
-                    contact_time: float, speed: float = 5.0) -> str | None:
-    """Whether the law's force writes past the history slots it declares: None, or
-    where it did. numba checks no array bounds, and in the engine a write past them
+                    contact_time: float, speed: float = 5.0) -> tuple[bool | None, str]:
+    """Whether the law's force keeps to the history slots it declares: (True, what was
+    called), (False, where it wrote past them) or (None, why it was not judged). numba checks no array bounds, and in the engine a write past them
     lands in the next contact's row (or past the array, a corrupted heap) unnoticed.
     The force is called directly (its wall copy, ``force_alone``, where there is one),
     on a history row followed by guard values, along an oblique loading-unloading path
@@ -619,7 +619,8 @@ def history_overrun(law: ContactLaw, constants_row, effective_radius: float, eff
     twisting parts). ``minidem verify``'s first check, and ``minidem run``'s for a law
     or part from a plugin (Simulation.check_history_bounds). A force that fails to
     compile raises numba's error (the caller reports it); one that raises on these
-    made-up values is not judged (None: a run reports what it raises there)."""
+    made-up values is not judged (an overrun itself raises IndexError under
+    NUMBA_BOUNDSCHECK=1)."""
     import numpy as np
     from numba.core.errors import NumbaError
 
@@ -646,11 +647,11 @@ def history_overrun(law: ContactLaw, constants_row, effective_radius: float, eff
             force(*arguments)
         except NumbaError:
             raise  # does not compile: the caller reports it
-        except Exception:  # noqa: BLE001 - raised on these made-up values: a run reports its own
-            return None
+        except Exception as exc:  # noqa: BLE001 - raised on these made-up values
+            return None, f"not judged: the force raised {type(exc).__name__} at call {step} of {steps - 1}: {exc}"
         previous = overlap
         written = np.flatnonzero(buffer[size:] != _GUARD_VALUE)
         if written.size:
-            return (f"call {step} of {steps - 1}: the force wrote history[{size + int(written[0])}]; the law "
-                    f"declares {size} slot(s)")
-    return None
+            return False, (f"call {step} of {steps - 1}: the force wrote history[{size + int(written[0])}]; the law "
+                           f"declares {size} slot(s)")
+    return True, f"{steps - 1} calls along an oblique load-unload path"

@@ -902,13 +902,15 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 touching_entries[n_touching] = e
                 n_touching += touching
                 previous = pair_overlap[e]
-                if TRACK or ((not touching) & (previous > lives_above)):
+                # >=: also a contact that began touching at the start, stored at lives_above,
+                # and went no further (touches_at_start; as at a plane)
+                if TRACK or ((not touching) & (previous >= lives_above)):
                     if not touching:
                         overlap = reach - math.sqrt(distance_squared)
                         pair_overlap[e] = overlap
                         if TRACK:
                             note_transitions(stats, time, dt, overlap, previous)
-                        if previous > lives_above:
+                        if previous >= lives_above:
                             end_pair_contact(e, pair_history, reaction_slot, reaction, reaction_in_use)
             for k in range(n_touching):
                 e = non_negative(touching_entries[k])
@@ -934,8 +936,8 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                     # a rounding of the contact's reach): apart, as the next step's first
                     # pass will find it, and ended as there. Evaluated, its overlap 0 would
                     # keep the history and a stored reaction's flag for good (the end test
-                    # is previous > 0), a force on a partner finished by finish_kick_drift
-                    if previous > lives_above:
+                    # is previous >= 0), a force on a partner finished by finish_kick_drift
+                    if previous >= lives_above:
                         end_pair_contact(e, pair_history, reaction_slot, reaction, reaction_in_use)
                     continue
                 if distance == 0.0:

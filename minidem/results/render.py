@@ -150,9 +150,10 @@ def render(directory: str | Path, array: str = "velocity", png: str | Path | Non
 
     from minidem import files
 
-    # checked before any work: a GIF frame lasts a whole number of milliseconds, 1000/fps
-    if not (math.isfinite(fps) and 0.0 < fps <= 1000.0):
-        raise RenderError(f"--fps {fps:g}: expected frames per second in (0, 1000], e.g. 10")
+    # checked before any work: a GIF frame lasts a whole number of centiseconds, and
+    # browsers play a delay below 2 of them at 10 frames per second
+    if not (math.isfinite(fps) and 0.0 < fps <= 50.0):
+        raise RenderError(f"--fps {fps:g}: expected frames per second in (0, 50], e.g. 10")
     try:
         output = Output(directory)
     except MinidemError as exc:

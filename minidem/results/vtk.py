@@ -684,17 +684,27 @@ class VTKSeriesWriter:
                                          self._mode, time_s)
 
     def remove_earlier_frames(self) -> int:
-        """Delete the frame files of this series' name (``{prefix}_NNNNNN.vtu``, and its
-        contact frames) that an earlier run left in the directory: a shorter run writes
+        """Delete the frame files an earlier run's series of this name listed in the
+        directory (``{prefix}.pvd`` and ``{prefix}_contacts.pvd``, files named
+        ``{prefix}_NNNNNN.vtu`` or ``{prefix}_contacts_NNNNNN.vtu``): a shorter run writes
         fewer, and ParaView's file dialog groups every ``particles_*.vtu`` into one series,
-        the two runs' frames mixed. Before the first frame of a run that does not continue
-        a series; returns how many were removed."""
+        the two runs' frames mixed. Only files those collections list (never another file
+        of the directory, whatever its name). Before the first frame of a run that does
+        not continue a series; returns how many were removed."""
+        from xml.etree import ElementTree
+
         pattern = re.compile(rf"{re.escape(self.prefix)}(_contacts)?_\d{{6}}\.vtu")
         removed = 0
-        for entry in os.scandir(self.directory):
-            if pattern.fullmatch(entry.name) and entry.is_file(follow_symlinks=False):
-                os.remove(entry.path)
-                removed += 1
+        for collection in (self._particles.path, self._contacts.path):
+            try:
+                listed = [entry.get("file", "") for entry in ElementTree.parse(collection).getroot().iter("DataSet")]
+            except (OSError, ElementTree.ParseError):  # none, or not one minidem wrote: nothing to remove
+                continue
+            for name in listed:
+                path = os.path.join(self.directory, name)
+                if pattern.fullmatch(name) and os.path.isfile(path) and not os.path.islink(path):
+                    os.remove(path)
+                    removed += 1
         return removed
 
     def write_walls(self, meshes: Sequence[tuple], name: str = "walls", tables: Sequence[int] | None = None) -> str:

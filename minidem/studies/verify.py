@@ -194,12 +194,13 @@ class Battery:
         duration = laws.law_contact_time(self.law, pair, constants, radius, mass, 5.0)
         size = self.law.history_size
         try:
-            overrun = laws.history_overrun(self.law, row, radius, mass, duration)
+            passed, detail = laws.history_overrun(self.law, row, radius, mass, duration)
         except numba.core.errors.NumbaError as exc:  # the force does not compile: say where, exit 2
             raise laws.LawError(f"law '{self.law.name}' from plugin '{self.entry.plugin}' "
                                 f"({self.entry.distribution}): {law_signature.force_problem(self.law, exc)}") from exc
-        return [Check("history stays in its declared slots", overrun is None,
-                      overrun or "199 calls along an oblique load-unload path", f"writes only history[0:{size}]",
+        # not judged (the force raised on this smooth path) fails here: the battery's
+        # engine runs would call it on history rows it may overrun
+        return [Check("history stays in its declared slots", passed is True, detail, f"writes only history[0:{size}]",
                       "the law's HistorySlot declarations (docs/writing-a-contact-law.md)")]
 
     def adhesion(self) -> list[Check]:
