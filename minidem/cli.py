@@ -66,8 +66,11 @@ def print_summary(summary: dict, out=None) -> None:
         ("wall time", summary["wall_time_s"], "s"),
     ]
     width = max(len(name) for name, _, _ in rows)
-    for name, value, note in rows:
-        print(f"  {name:<{width}}  {_format_value(value):>14}  {note}", file=out)
+    # the values' column as wide as its widest (a combination's name, hertz+tsuji+mindlin+epsd)
+    values = [_format_value(value) for _, value, _ in rows]
+    value_width = max(14, *(len(text) for text in values))
+    for (name, _, note), text in zip(rows, values):
+        print(f"  {name:<{width}}  {text:>{value_width}}  {note}", file=out)
 
 
 def command_run(args) -> int:
