@@ -242,6 +242,21 @@ def test_an_unknown_option_gets_the_commands_usage_and_a_missing_parameter_says_
         scenario.load_scene(path)
 
 
+def test_a_fill_switched_to_another_kind_reports_its_unused_and_its_missing_keys_at_once():
+    # review: kind = "random" in a lattice fill without count reported spacing and jitter
+    # as unused, and the missing count only once those were fixed
+    from conftest import REPO
+
+    data = scenario.read_toml(REPO / "scenarios" / "settle.toml")
+    data["fill"][0]["kind"] = "random"
+    del data["fill"][0]["count"]
+    with pytest.raises(scenario.ScenarioError) as refused_:
+        scenario.build_scene(data, "settle.toml")
+    message = str(refused_.value)
+    assert 'fill[0].spacing: not used by kind = "random"' in message
+    assert "fill[0].count: missing required key for a random fill" in message
+
+
 def test_bad_set_syntax_in_a_real_process():
     done = run_cli("run", OBLIQUE, "--set", "contact.law")
     assert done.returncode == 2
