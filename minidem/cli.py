@@ -340,7 +340,8 @@ def command_verify(args) -> int:
     battery = verify.Battery(args.law, args.set)
     # named after the law as run: `hm --set contact.rolling=epsd` checks hm+epsd
     out = args.out or Path("out") / f"verify-{battery.law.name}"
-    checks = verify.run_checks(battery, out)
+    checks = verify.run_checks(battery, out, progress=lambda text: print(
+        f"minidem: verify {battery.law.name}: {text}", file=sys.stderr, flush=True))
     # the battery as run: its --set values change what it checks
     print(" ".join(["minidem verify", args.law, *(f"--set {value}" for value in args.set or ())]))
     print(verify.format_table(checks))

@@ -41,6 +41,8 @@ def test_cli_exit_code_reports_failure(tmp_path):
                          capture_output=True, text=True)
     assert bad.returncode == 1, bad.stderr
     assert "FAIL" in bad.stdout and "PASS" in bad.stdout
+    # each group of checks announced as it starts (review: tens of silent seconds)
+    assert "minidem: verify hmdns_integral: the history slots" in bad.stderr
     unknown = subprocess.run([sys.executable, "-m", "minidem.cli", "verify", "hdm"], capture_output=True, text=True)
     assert unknown.returncode == 2 and "did you mean" in unknown.stderr.lower() and "hmd" in unknown.stderr
 

@@ -447,23 +447,31 @@ def run_battery(law_name: str, overrides: list[str] = (), out_directory: Path | 
     return run_checks(Battery(law_name, overrides), out_directory)
 
 
-def run_checks(battery: Battery, out_directory: Path | None = None) -> list[Check]:
+def run_checks(battery: Battery, out_directory: Path | None = None, progress=None) -> list[Check]:
     """Every check of the battery, and its report in ``out_directory`` (None: none).
+    ``progress(text)``: told which checks run next (the CLI prints it: the battery
+    compiles kernels and runs tens of impacts, tens of seconds on a fresh install).
 
     A force that writes past its declared history slots ends the battery there, with
     that check failed: every later check runs it in the engine, whose history rows it
     would overrun (numba checks no bounds), and the process died on a corrupted heap
     before the table was printed (free(): invalid next size)."""
+    tell = progress or (lambda text: None)
+    tell("the history slots")
     checks = battery.history_bounds()
     if not all(c.passed for c in checks):
         if out_directory is not None:
             _write_report(out_directory, battery, checks, None, None)
         return checks
+    tell("energy, sliding limit, contact duration, adhesion")
     checks += battery.energy() + battery.sliding_limit() + battery.duration()
     checks += battery.adhesion()
+    tell("the paper's angles against hmd, the first load-unload loop, convergence")
     comparison, curves = battery.against_hmd()
     loop, trace = battery.first_loop()
-    checks += comparison + loop + battery.convergence() + battery.pair_collision() + battery.exchange()
+    checks += comparison + loop + battery.convergence()
+    tell("a two-sphere collision, and the same with the spheres' order reversed")
+    checks += battery.pair_collision() + battery.exchange()
     if out_directory is not None:
         _write_report(out_directory, battery, checks, curves, trace)
     return checks
