@@ -1116,8 +1116,7 @@ def _fill(table, where, source, errors, material_of, bodies: _Bodies) -> None:
     material = material_of(values.get("material"), f"{where}.material")
     # every problem at once: a key the kind lacks beside the keys it does not use (review:
     # the missing count of a fill switched to "random" came only after the others were fixed)
-    complete = kind not in _FILL_REQUIRED or _required(values, *_FILL_REQUIRED[kind][:1], _FILL_REQUIRED[kind][1],
-                                                       where, errors)
+    complete = kind not in _FILL_REQUIRED or _required(values, *_FILL_REQUIRED[kind], where, errors)
     if errors.has_under(where) or not complete:
         return
     try:
