@@ -1,15 +1,19 @@
-"""numba with minidem.engine.compile_speed installed: the inliner copies a callee's IR
+"""numba with minidem.compile_speed installed: the inliner copies a callee's IR
 with one memo for all its blocks, which must be a faithful, independent deep copy, and
 the compiler flags give the values numba's own code gives, and a repeated call resolves
-from a memo to numba's own signature (the kernels' machine code is
-the same with and without any of them; their results are checked by every physics test)."""
+from a memo to numba's own signature, and the garbage collector pauses for a compile and
+only then (the kernels' machine code is the same with and without any of them; their
+results are checked by every physics test)."""
 
 import copy
+import gc
 
 import numba
-from numba.core import compiler, inline_closurecall, ir, targetconfig
+import pytest
+from numba.core import compiler, event, inline_closurecall, ir, targetconfig
 
-from minidem.engine import compile_speed, simulation  # noqa: F401  (simulation installs it)
+from minidem import compile_speed
+from minidem.engine import simulation  # noqa: F401  (simulation installs it)
 
 
 def _branchy(x, n):
@@ -26,6 +30,71 @@ def test_installed_for_the_engine():
     assert isinstance(inline_closurecall.copy, compile_speed._BlockCopier)
     assert targetconfig.TargetConfig.values is compile_speed.option_values
     assert compile_speed.install()  # idempotent
+    assert event._registered["numba:compile"].count(compile_speed._COLLECTOR_PAUSE) == 1
+
+
+def test_installed_before_the_neighbour_search_compiles():
+    # the first compile of a multi-sphere first run is the scene check's neighbour search,
+    # before the engine is imported (minidem.engine.warmup): its module installs the repairs
+    import subprocess
+    import sys
+
+    code = ("import sys\nimport minidem.geometry.neighbours\n"
+            "from numba.core import inline_closurecall\nfrom minidem import compile_speed\n"
+            "assert 'minidem.engine.simulation' not in sys.modules\n"
+            "assert isinstance(inline_closurecall.copy, compile_speed._BlockCopier)\n"
+            "assert getattr(compile_speed._COLLECTOR_PAUSE, 'registered', False)\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+
+
+class _Seen(event.Listener):
+    """What the collector's state is while numba compiles (registered after the pause)."""
+
+    def __init__(self):
+        self.enabled = []
+
+    def on_start(self, ev):
+        self.enabled.append(gc.isenabled())
+
+    def on_end(self, ev):
+        pass
+
+
+@pytest.fixture
+def seen():
+    listener = _Seen()
+    event.register("numba:compile", listener)
+    yield listener
+    event.unregister("numba:compile", listener)
+
+
+def test_the_collector_pauses_for_a_compile_and_only_then(seen):
+    # repair 4: off from the outermost compile's start (a nested one sees it off too) to
+    # its end, on again after; as the program had it: a disabled collector stays disabled,
+    # and a compile that fails turns it on again all the same
+    inner = numba.njit(lambda x: x * 2.0)
+
+    @numba.njit
+    def outer(x):
+        return inner(x) + 1.0
+
+    assert gc.isenabled()
+    assert outer(1.5) == 4.0
+    assert seen.enabled == [False, False] and gc.isenabled()  # outer, then inner inside it
+
+    seen.enabled.clear()
+    with pytest.raises(numba.core.errors.TypingError):
+        numba.njit(lambda x: x.no_such_attribute)(1.0)
+    assert seen.enabled == [False] and gc.isenabled()
+
+    gc.disable()
+    try:
+        seen.enabled.clear()
+        assert numba.njit(lambda x: x - 1.0)(1.0) == 0.0
+        assert seen.enabled == [False] and not gc.isenabled()
+    finally:
+        gc.enable()
 
 
 def _numba_values(config):

@@ -29,7 +29,7 @@ def serve() -> None:
     the critical path of a scene whose kernel the helper compiles (settle.toml)."""
     try:
         from minidem.contact import laws
-        from minidem.engine import simulation  # noqa: F401  (numba, the engine's functions, compile_speed)
+        from minidem.engine import simulation  # noqa: F401  (numba, the engine's functions, minidem.compile_speed)
 
         laws.registry()
     except Exception:  # the job imports them again and the run reports what fails

@@ -23,9 +23,9 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from minidem import __version__, codecache
+from minidem import __version__, codecache, compile_speed
 from minidem.contact import declarations, history as contact_history, laws
-from minidem.engine import compile_speed, integrate, kernel
+from minidem.engine import integrate, kernel
 from minidem.engine.notices import notice_if_slow
 from minidem.engine.run_loop import RunLoop, RunResult
 from minidem.engine.state import STATE_ARRAYS, State, pair_arrays
@@ -42,8 +42,7 @@ from minidem.scene.scenario import Scene, ScenarioError
 # the explicit blocks of the kernel: results are the same bits on any layer.
 if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
     numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
-# numba's inliner copies each inlined function's IR once instead of once per basic block
-# (the same machine code; a third less CPU in a first run: minidem.engine.compile_speed)
+# numba's compiles made faster, before the first (the same machine code: minidem.compile_speed)
 compile_speed.install()
 
 _TEMPLATE = Path(kernel.__file__)

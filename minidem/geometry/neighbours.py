@@ -20,7 +20,12 @@ import time
 import numba
 import numpy as np
 
+from minidem import compile_speed
 from minidem.geometry.primitives import triangle_closest_point
+
+# the check of a scene for overlapping spheres compiles the search before the engine is
+# imported: numba's compiles made faster from the first (minidem.compile_speed)
+compile_speed.install()
 
 # Cells per particle allowed before the cell size is enlarged. Bounds memory by O(N)
 # when a few far-apart particles would otherwise span a huge, almost empty grid.
