@@ -507,8 +507,9 @@ def mesh_normal_at(px, py, pz, triangles, t):
 # no gain (hopper scene, 250 beads, 0.3 s: 1.25 s of CPU either way; 2026-11-22)
 @numba.njit(cache=True)
 def mesh_entry_overlap(px, py, pz, ri, triangles, candidates, start, stop, k, touches_face, tolerance):
-    """(overlap, normal) of sphere i with candidate entry k, after the rule of one contact
-    per feature region (see force_range); -1 for a contact another entry carries.
+    """(overlap, normal, on a face's interior) of sphere i with candidate entry k, after
+    the rule of one contact per feature region (see force_range); -1 for a contact
+    another entry carries.
 
     An edge or vertex contact is shadowed by a deeper edge or vertex contact (or, at
     equal depth, an earlier one) when its point is not above that contact's tangent
@@ -530,7 +531,7 @@ def mesh_entry_overlap(px, py, pz, ri, triangles, candidates, start, stop, k, to
                         and (cx - c2x) * n2x + (cy - c2y) * n2y + (cz - c2z) * n2z <= tolerance:
                     overlap = -1.0
                     break
-    return overlap, nx, ny, nz
+    return overlap, nx, ny, nz, feature == FACE
 
 
 @numba.njit(cache=True, error_model="numpy", fastmath=FAST, _nrt=False)
@@ -773,17 +774,20 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
         if CYLINDERS:
             for c in range(base.shape[0]):
                 overlap, nx, ny, nz = cylinder_overlap(px, py, pz, ri, base, axis, cylinder_radius, length, c)
+                lives_above = engaged_above(constants, pair_row[material[i], cylinder_material[c]])
+                touching_at_start = touches_at_start(dt, overlap, lives_above, ri, vi, (nx, ny, nz))
+                if touching_at_start:
+                    overlap = lives_above  # the law sees the touch itself (as at a plane)
                 previous = cylinder_overlap_prev[i, c]
                 cylinder_overlap_prev[i, c] = overlap
                 if TRACK:
                     note_transitions(stats, time, dt, overlap, previous)
-                lives_above = engaged_above(constants, pair_row[material[i], cylinder_material[c]])
-                if overlap <= lives_above or overlap >= ri:
-                    if overlap <= lives_above < previous:
-                        cylinder_history[i, c, :] = 0.0
-                    elif overlap >= ri:
+                if (overlap <= lives_above and not touching_at_start) or overlap >= ri:
+                    if overlap >= ri:
                         fault(status, TUNNELLED, i, c, CYLINDER)
                         break
+                    if previous >= lives_above:  # as at a plane: also a touch at the start that went no further
+                        cylinder_history[i, c, :] = 0.0
                     continue
                 if SPIN:
                     wi = (angular_velocity[i, 0], angular_velocity[i, 1], angular_velocity[i, 2])
@@ -827,8 +831,8 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                         continue
                     t = mesh_candidates[k]
                     turned_from = t  # the triangle the contact touched at the last step
-                    overlap, nx, ny, nz = mesh_entry_overlap(px, py, pz, ri, triangles, mesh_candidates, start, stop,
-                                                             k, touches_face, tolerance)
+                    overlap, nx, ny, nz, on_face = mesh_entry_overlap(px, py, pz, ri, triangles, mesh_candidates,
+                                                                      start, stop, k, touches_face, tolerance)
                     if sweep == 0 and overlap <= 0.0:
                         ending += 1  # left as it is (previous > 0 marks it) until the row is done
                         continue
@@ -845,10 +849,16 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                                 mesh_history[e, :] = 0.0
                                 ending -= 1
                                 break
+                    # a touch at the start (as at a plane) counts on a face's interior only:
+                    # an edge or vertex there is shared, and which entry carries it is decided
+                    # on overlaps above zero
+                    touching_at_start = on_face and touches_at_start(dt, overlap, 0.0, ri, vi, (nx, ny, nz))
+                    if touching_at_start:
+                        overlap = 0.0  # the law sees the touch itself
                     mesh_overlap[k] = overlap
                     if TRACK:
                         note_transitions(stats, time, dt, overlap, previous)
-                    if overlap <= 0.0:
+                    if overlap <= 0.0 and not touching_at_start:
                         continue
                     if overlap >= ri:
                         fault(status, TUNNELLED, i, t, TRIANGLE)
