@@ -96,6 +96,14 @@ FAKE_PLUGINS = {
             registry.add(law("fake_bad_default", parameters=(
                 Parameter("stiffness", -1.0, "N/m", "normal stiffness", low=0.0, low_open=True),)))
             registry.add(law("fake_list_parameters", parameters=[]))
+            # metadata minidem laws prints, and bounds no value can pass (review of 2026-11-28:
+            # a None unit took `minidem laws` down for every law)
+            registry.add(law("fake_no_unit", parameters=(Parameter("stiffness", 1e8, None, "normal stiffness"),)))
+            registry.add(law("fake_blank_description", parameters=(Parameter("stiffness", 1e8, "N/m", " "),)))
+            registry.add(law("fake_empty_bounds", parameters=(
+                Parameter("stiffness", None, "N/m", "normal stiffness", low=1e9, high=1.0),)))
+            registry.add(law("fake_open_point", parameters=(
+                Parameter("stiffness", None, "N/m", "normal stiffness", low=1.0, high=1.0, high_open=True),)))
             registry.add({"name": "fake_dict"})
             registry.add(law("fake_survivor"))
     ''',
@@ -130,6 +138,14 @@ FAKE_PLUGINS = {
         def short_force(constants, effective_radius, effective_mass, normal_overlap):
             return constants[0] * normal_overlap, 0.0, 0.0, 0.0
 
+        @numba.njit
+        def list_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+                       normal_velocity, tangential_increment, tangential_velocity, history):
+            return [constants[0] * normal_overlap, 0.0, 0.0]  # a list, not a tuple (numba: a bare ValueError)
+
+        def prepare_from_an_unset_parameter(pair, params):
+            return {"stiffness": params["derived_stiffness"]}  # None when the scenario does not set it
+
         def broken_contact_time(pair, constants, effective_radius, effective_mass, normal_speed):
             return constants["stifness"]  # a typo: KeyError
 
@@ -150,6 +166,9 @@ FAKE_PLUGINS = {
             registry.add(law("fake_negative_time", contact_time=lambda *args: -1.0))
             registry.add(law("fake_number_time", contact_time=1e-4))
             registry.add(law("fake_none_prepare", prepare=lambda pair, params: None))
+            registry.add(law("fake_list_force", force=list_force))
+            registry.add(law("fake_none_constant", prepare=prepare_from_an_unset_parameter, parameters=(
+                Parameter("derived_stiffness", None, "N/m", "normal stiffness, derived when not given"),)))
     ''',
     "fake_claim_a": '''
         @hookimpl
@@ -277,6 +296,10 @@ def test_bad_declarations_are_reported_one_by_one(fake_site):
     assert "default of parameter 'stiffness'" in broken["fake_bad_default"].reason
     assert "must be > 0" in broken["fake_bad_default"].reason
     assert "tuple of minidem.contact.Parameter" in broken["fake_list_parameters"].reason
+    assert "parameter 'stiffness': unit must be a non-empty string, got None" in broken["fake_no_unit"].reason
+    assert "description must be a non-empty string, got ' '" in broken["fake_blank_description"].reason
+    assert "bounds [1e+09, 1] admit no value" in broken["fake_empty_bounds"].reason
+    assert "bounds [1, 1) admit no value" in broken["fake_open_point"].reason
     assert "expects a minidem.contact.ContactLaw (or ContactPart, Preset), got dict" in broken[None].reason
     assert all(b.plugin == "fake_bad_laws" for b in registry.broken)
     # the good law after the bad ones is kept, the built-in hmd is not displaced
@@ -361,6 +384,12 @@ def test_unknown_law_names_the_plugins_that_failed_to_load(announced):
     ("fake_bad_stiffness", r"stiffness\(\) failed: ValueError: math domain error \(at .*fake_names\.py:\d+\)"),
     ("fake_negative_time", r"contact_time\(\) returned -1\.0; it must be a duration in s"),
     ("fake_none_prepare", r"prepare\(\) must return a dict of constants, got NoneType"),
+    # review of 2026-11-28: a list return was an internal error with an empty message, a
+    # constant of None a bare TypeError naming neither (an internal error in verify)
+    ("fake_list_force", r"list_force in .*fake_names\.py, line \d+ must return 4 numbers \(fn, ftx, fty, ftz\), "
+                        r"it returns a list \(list\(float64\).*\): return a tuple"),
+    ("fake_none_constant", r"prepare\(\) \(prepare_from_an_unset_parameter in .*fake_names\.py, line \d+\) must "
+                           r"give each constant as a number, got stiffness=None"),
 ])
 def test_mistakes_in_a_law_are_reported_with_the_law_and_where(fake_site, monkeypatch, law_name, expected):
     registry = load("fake_names")
@@ -458,6 +487,7 @@ def test_minidem_laws_lists_plugins_with_package_version_and_broken_ones(fake_si
     assert "hmd (aliases: hertz_mindlin_deresiewicz)  [minidem 0.1.0, plugin 'builtin']" in done.stdout
     assert "BROKEN plugin 'missing (minidem-fakeplugin)': ModuleNotFoundError" in done.stdout
     assert "BROKEN plugin 'bad_laws' law 'Bad-Name'" in done.stdout
+    assert "BROKEN plugin 'bad_laws' law 'fake_no_unit': parameter 'stiffness': unit must be" in done.stdout
     # every parameter's description starts in one column, at each indent (long names,
     # units such as 'N m s/rad' and integer-choice bounds pushed rows out of line)
     payload = json.loads(run_cli("laws", "--json", env=env).stdout)

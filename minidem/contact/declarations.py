@@ -39,6 +39,26 @@ FORCE_ARGUMENTS = ("constants", "effective_radius", "effective_mass", "normal_ov
 COUPLE_ARGUMENTS = ("relative_spin", "normal", "dt")
 
 
+def _is_number(value) -> bool:
+    """Whether ``float(value)`` gives a number (None, a string or a sequence does not)."""
+    if isinstance(value, str):
+        return False
+    try:
+        float(value)
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
+def _located(func) -> str:
+    """``name in file, line N`` of a Python function, as error messages name it."""
+    try:
+        _, line = inspect.getsourcelines(func)
+        return f"{getattr(func, '__qualname__', func)} in {inspect.getsourcefile(func)}, line {line}"
+    except (OSError, TypeError):
+        return str(getattr(func, "__qualname__", func))
+
+
 @dataclasses.dataclass(frozen=True)
 class Parameter:
     """A typed law parameter, settable from ``[contact]`` in a scenario file.
@@ -296,6 +316,12 @@ class ContactLaw:
         missing = [c for c in self.constants if c not in produced]
         if missing:
             raise LawError(f"law '{self.name}': prepare() did not return constants {missing}")
+        not_numbers = {c: produced[c] for c in self.constants if not _is_number(produced[c])}
+        if not_numbers:
+            raise LawError(f"law '{self.name}': prepare() ({_located(self.prepare)}) must give each constant as a "
+                           f"number, got {', '.join(f'{c}={v!r}' for c, v in not_numbers.items())} (a parameter "
+                           "whose default is None arrives as None when the scenario does not set it: derive the "
+                           "constant's value from the others there)")
         row = np.array([float(produced[c]) for c in self.constants], dtype=np.float64)
         if not np.all(np.isfinite(row)):
             bad = [c for c, v in zip(self.constants, row) if not math.isfinite(v)]

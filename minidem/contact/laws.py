@@ -371,6 +371,29 @@ def _declaration_problem(law) -> str | None:
     return _compiled_function_problem(law.force, "force", law.force_arguments)
 
 
+def _parameter_problem(p: Parameter) -> str | None:
+    """What is wrong with a parameter's declaration itself (its name, unit, description
+    and bounds), before its default is checked: ``minidem laws`` prints every field, and
+    a value must be able to pass the bounds."""
+    if not isinstance(p.name, str) or not p.name.isidentifier():
+        return f"parameter name {p.name!r} must be a name a scenario's [contact] table can use (letters, digits, _)"
+    for field in ("unit", "description"):
+        value = getattr(p, field)
+        if not isinstance(value, str) or not value.strip():
+            return (f"parameter '{p.name}': {field} must be a non-empty string, got {value!r}"
+                    + (' (write "-" for a number without a unit)' if field == "unit" else ""))
+    for field in ("low", "high"):
+        value = getattr(p, field)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
+            return f"parameter '{p.name}': {field} must be a number (or -inf/inf for none), got {value!r}"
+    for field in ("low_open", "high_open", "required"):
+        if not isinstance(getattr(p, field), bool):
+            return f"parameter '{p.name}': {field} must be True or False, got {getattr(p, field)!r}"
+    if p.low > p.high or (p.low == p.high and (p.low_open or p.high_open)):
+        return f"parameter '{p.name}': its bounds {p.bounds_text()} admit no value (low must be below high)"
+    return None
+
+
 def _shared_declaration_problem(item) -> str | None:
     """The checks a law and a part share: description, parameters (unique names, valid
     defaults), history slots, constants, and that the Python hooks are callable."""
@@ -387,6 +410,9 @@ def _shared_declaration_problem(item) -> str | None:
     if len(set(names)) != len(names):
         return "parameter names are not unique"
     for p in item.parameters:
+        problem = _parameter_problem(p)
+        if problem:
+            return problem
         if p.default is not None and p.check(p.default):
             return f"default of parameter '{p.name}' {p.check(p.default)}"
     if not isinstance(item.constants, tuple) or not all(isinstance(c, str) for c in item.constants):

@@ -69,15 +69,16 @@ def _compiled_alone(function, signature, count: int, what: str, shape: str) -> s
             return f"its {what} {where} must return a number ({shape}), it returns {returned}"
     elif not (isinstance(returned, numba.types.BaseTuple) and len(returned) == count
               and all(isinstance(t, number) for t in returned)):
+        if isinstance(returned, numba.types.List):  # return [a, b, ...]: numba's lists are not tuples
+            returned = f"a list ({returned}): return a tuple, (a, b, ...)"
         return f"its {what} {where} must return {count} numbers ({shape}), it returns {returned}"
     return None
 
 
-def force_problem(law: declarations.ContactLaw, exc: Exception) -> str:
-    """Why a law's force function broke the kernel's compilation: compiled alone with the
-    engine's argument types (each part of a combination with its kind's), so the message
-    names the law's or the part's function and file (and a wrong return value), not the
-    kernel line that called it."""
+def _alone_problem(law: declarations.ContactLaw) -> str | None:
+    """What is wrong with the law's force function (each part of a combination) compiled
+    alone with the engine's argument types, naming the function and its file; None when
+    nothing is."""
     shapes = {"normal": "elastic force, stiffness, contact radius", "damping": "the dashpot's force",
               "tangential": "ftx, fty, ftz", "rolling": "the couple mx, my, mz", "twisting": "the couple about n"}
     for part in law.parts:
@@ -86,7 +87,34 @@ def force_problem(law: declarations.ContactLaw, exc: Exception) -> str:
         if why:
             return f"{part.kind} part '{part.name}': {why}"
     if not law.parts:
-        why = _compiled_alone(law.force, _FORCE_SIGNATURE, 4, "force function", "fn, ftx, fty, ftz")
-        if why:
-            return why
-    return f"its force function does not compile in the engine: {_numba_cause(exc)}"
+        return _compiled_alone(law.force, _FORCE_SIGNATURE, 4, "force function", "fn, ftx, fty, ftz")
+    return None
+
+
+def force_problem(law: declarations.ContactLaw, exc: Exception) -> str:
+    """Why a law's force function broke the kernel's compilation: compiled alone with the
+    engine's argument types (each part of a combination with its kind's), so the message
+    names the law's or the part's function and file (and a wrong return value), not the
+    kernel line that called it."""
+    return _alone_problem(law) or f"its force function does not compile in the engine: {_numba_cause(exc)}"
+
+
+def law_error(law: declarations.ContactLaw, entry, exc: Exception) -> Exception:
+    """The error to raise for ``exc``, raised while the kernel of ``law`` (registered as
+    ``entry``) compiled: a LawError naming the law, its plugin and what is wrong with its
+    force, for numba's own errors; for another exception (numba raises a bare ValueError
+    or TypeError on some return values, e.g. a list where the engine unpacks a tuple) the
+    same when compiling the force alone finds the fault, else ``exc`` itself (not the
+    law's fault)."""
+    from minidem.contact.laws import LawError
+
+    if isinstance(exc, numba.core.errors.NumbaError):
+        problem = force_problem(law, exc)
+    else:
+        try:
+            problem = _alone_problem(law)
+        except Exception:  # noqa: BLE001 - the original error is the one to report
+            problem = None
+        if problem is None:
+            return exc
+    return LawError(f"law '{law.name}' from plugin '{entry.plugin}' ({entry.distribution}): {problem}")

@@ -19,7 +19,7 @@ import numpy as np
 from minidem import __version__, codecache
 from minidem.contact import declarations, laws
 from minidem.engine import blocks, integrate, kernel, warmup
-from minidem.engine.law_signature import force_problem
+from minidem.engine.law_signature import law_error
 from minidem.engine.notices import notice_if_slow
 from minidem.engine.state import LISTS, State, full_arrays
 from minidem.errors import MinidemError
@@ -319,9 +319,11 @@ class RunLoop:
                 if self.resume_from is None and (sim.pairs or meshes):
                     sim.rebuild(state)
                 self.first_call()
-        except numba.core.errors.NumbaError as exc:
-            raise laws.LawError(f"law '{sim.law.name}' from plugin '{sim.entry.plugin}' "
-                                f"({sim.entry.distribution}): {force_problem(sim.law, exc)}") from exc
+        except (numba.core.errors.NumbaError, ValueError, TypeError) as exc:
+            error = law_error(sim.law, sim.entry, exc)
+            if error is exc:
+                raise
+            raise error from exc
         finally:
             # a helper still running (the run failed or was interrupted while it compiled)
             # is ended and reaped here: left to the interpreter's exit, a second Ctrl-C
