@@ -103,7 +103,7 @@ def command_run(args) -> int:
     policy = checkpoint.Policy(directory, scene.checkpoint_interval, scene.checkpoint_wall_interval)
     resume_from = checkpoint.load_for_resume(sim, directory) if args.resume else None
     if not args.quiet:
-        print(f"minidem: {scene.source}: law '{sim.law.name}' ({sim.entry.distribution} {sim.entry.version}), "
+        print(f"minidem: {scene.source}: law '{sim.law.name}' ({sim.entry.packages}), "
               f"{scene.n_particles} particle(s), {scene.wall_point.shape[0]} wall(s)")
         print(f"  time step {sim.dt:.4g} s ({sim.dt_reason})")
         chosen = scene.raw.get("run", {}).get("integrator", "auto") == "auto"
@@ -311,7 +311,7 @@ def command_laws(args) -> int:
             for q in part.parameters:
                 print(parameter_line(q, "      "))
     for b in registry.broken:
-        print(f"BROKEN plugin '{b.plugin}'" + (f" law '{b.law}'" if b.law else "") + f": {b.reason}")
+        print(f"BROKEN plugin '{b.plugin}'" + (f" {b.what} '{b.law}'" if b.law else "") + f": {b.reason}")
     return EXIT_OK
 
 

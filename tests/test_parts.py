@@ -227,6 +227,13 @@ def wrong_damping(constants, effective_radius, effective_mass, normal_overlap, n
     return constants[0] * normal_velocity, 0.0  # two numbers where the kind returns one
 
 
+@numba.njit
+def roll_overrun(constants, effective_radius, effective_mass, normal_overlap, contact_radius, normal_stiffness,
+                 normal_force, rolling_increment, rolling_velocity, history):
+    history[0] += rolling_increment[0]  # declares no slot, writes one
+    return 0.0, 0.0, 0.0
+
+
 def part(name, function=stiff_normal, kind="normal", **changes):
     fields = dict(name=name, kind=kind, description="a test part", parameters=(), constants=("k",), history=(),
                   prepare=lambda pair, params, prepared: {"k": 1e6}, function=function, provides=("linear",),
@@ -244,6 +251,8 @@ def minidem_register_laws(registry):
     registry.add(part("hertz"))
     registry.add(part("plugin_heat", kind="heat"))
     registry.add(part("plugin_energy", energy=("create",)))
+    registry.add(part("plugin_roll_overrun", roll_overrun, kind="rolling", constants=(), provides=(),
+                      prepare=lambda pair, params, prepared: {}, contact_time=None))
     registry.add(Preset("soft_hertz", "Hertz, Tsuji damping at e = 0.5, Mindlin",
                         {"normal": "hertz", "damping": "tsuji", "tangential": "mindlin"}, {"restitution": 0.5}))
     registry.add(Preset("bad_preset", "no normal part", {"damping": "tsuji"}))
@@ -269,9 +278,25 @@ def test_broken_parts_are_isolated_and_named(plugin):
     assert "'energy' must name one or more of store, dissipate, supply" in broken["plugin_energy"].reason
     assert "with a normal part" in broken["bad_preset"].reason
     assert all(b.plugin == "parts_plugin" for b in plugin.broken)
+    # named as what they are, not as laws (`minidem laws` prints "BROKEN plugin 'p' normal part 'x'")
+    assert (broken["plugin_short"].what, broken["plugin_heat"].what, broken["bad_preset"].what) == (
+        "damping part", "part", "preset")
     # the plugin's good part combines with built-in ones
     assert plugin.entry("plugin_spring+viscous+linear_history").law.frictional
     assert [p.name for p in plugin.parts("normal")] == ["dmt", "hertz", "hooke", "jkr", "plugin_spring", "sjkr"]
+
+
+def test_a_part_writing_past_its_history_is_named_with_the_layout_of_the_slots(plugin, monkeypatch):
+    # a part writes its own slice of the contact's history from its own index 0: the
+    # combination's index alone (history[3] of hm's 3 slots) did not say whose write it
+    # was (plugin author's review, 2026-11-28)
+    from minidem.studies import verify
+
+    monkeypatch.setattr(laws, "_REGISTRY", plugin)
+    [check] = verify.Battery("hm+plugin_roll_overrun").history_bounds()
+    assert check.passed is False
+    assert "wrote history[3]; the law declares 3 slot(s) (by part, in order: the law's own 3, rolling " \
+           "'plugin_roll_overrun' 0; each part writes its own slice, from its index 0)" in check.value
 
 
 def test_preset_is_a_named_combination_with_its_defaults(plugin):

@@ -143,6 +143,13 @@ FAKE_PLUGINS = {
                        normal_velocity, tangential_increment, tangential_velocity, history):
             return [constants[0] * normal_overlap, 0.0, 0.0]  # a list, not a tuple (numba: a bare ValueError)
 
+        @numba.njit
+        def undefined_name_force(constants, effective_radius, effective_mass, normal_overlap,
+                                 normal_overlap_increment, normal_velocity, tangential_increment,
+                                 tangential_velocity, history):
+            stiffness = constants[0]
+            return stiffnes * normal_overlap, 0.0, 0.0, 0.0  # noqa: F821 - the typo under test
+
         def prepare_from_an_unset_parameter(pair, params):
             return {"stiffness": params["derived_stiffness"]}  # None when the scenario does not set it
 
@@ -167,6 +174,7 @@ FAKE_PLUGINS = {
             registry.add(law("fake_number_time", contact_time=1e-4))
             registry.add(law("fake_none_prepare", prepare=lambda pair, params: None))
             registry.add(law("fake_list_force", force=list_force))
+            registry.add(law("fake_undefined_name", force=undefined_name_force))
             registry.add(law("fake_none_constant", prepare=prepare_from_an_unset_parameter, parameters=(
                 Parameter("derived_stiffness", None, "N/m", "normal stiffness, derived when not given"),)))
     ''',
@@ -388,6 +396,9 @@ def test_unknown_law_names_the_plugins_that_failed_to_load(announced):
     # constant of None a bare TypeError naming neither (an internal error in verify)
     ("fake_list_force", r"list_force in .*fake_names\.py, line \d+ must return 4 numbers \(fn, ftx, fty, ftz\), "
                         r"it returns a list \(list\(float64\).*\): return a tuple"),
+    # numba names no line for an undefined name: the line that uses it is found in the source
+    ("fake_undefined_name", r"undefined_name_force in .*fake_names\.py, line (\d+) does not compile: .*name "
+                            r"'stiffnes' is not defined.* \(line \d+ uses 'stiffnes'\)"),
     ("fake_none_constant", r"prepare\(\) \(prepare_from_an_unset_parameter in .*fake_names\.py, line \d+\) must "
                            r"give each constant as a number, got stiffness=None"),
 ])
@@ -569,3 +580,12 @@ def test_a_plugin_whose_hook_pluggy_ignores_is_reported_not_silently_missing(tmp
     assert "defines minidem_register_law, not the hook minidem_register_laws" in reasons["fake_misspelt"]
     assert "defines no minidem_register_laws hook" in reasons["fake_hookless"]
     assert registry.entry("hmd").plugin == "builtin"  # the others are untouched
+
+
+def test_a_combination_names_each_package_with_its_version():
+    # the run's header and summary.json's law_package: "minidem + minidem-kk-parts 0.1.0 +
+    # 1.0.0" read as two lists to match up (plugin author's review, 2026-11-28)
+    law = laws.load_registry().get("hmd")
+    combined = laws.RegisteredLaw(law, "builtin + kk", "minidem + minidem-kk-parts", "0.1.0 + 1.0.0")
+    assert combined.packages == "minidem 0.1.0 + minidem-kk-parts 1.0.0"
+    assert laws.load_registry().entry("hmd").packages.startswith("minidem ")

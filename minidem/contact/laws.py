@@ -51,14 +51,22 @@ class BrokenPlugin:
     law: str | None
     reason: str
     aliases: tuple[str, ...] = ()  # the refused law's other names, so a lookup by one finds this
+    what: str = "law"  # what ``law`` names: a law, or a part ("rolling part") or preset refused
 
 
 @dataclasses.dataclass
 class RegisteredLaw:
     law: ContactLaw
     plugin: str  # entry-point name
-    distribution: str  # package that provides it
-    version: str
+    distribution: str  # package that provides it (a combination's: its parts' packages joined by " + ")
+    version: str  # likewise
+
+    @property
+    def packages(self) -> str:
+        """Each package with its version, once: "minidem 0.1.0", or for a combination of
+        parts from two "minidem 0.1.0 + minidem-kk-parts 1.0.0"."""
+        pairs = zip(self.distribution.split(" + "), self.version.split(" + "))
+        return " + ".join(dict.fromkeys(f"{d} {v}".strip() for d, v in pairs))
 
 
 class LawRegistry:
@@ -104,7 +112,9 @@ class LawRegistry:
                     problem = f"name '{claimed}' is already taken by {owner}"
                     break
         if problem is not None:
-            self.broken.append(BrokenPlugin(plugin, name if isinstance(name, str) else None, problem))
+            kind = getattr(item, "kind", None)
+            what = "preset" if isinstance(item, Preset) else (f"{kind} part" if kind in KINDS else "part")
+            self.broken.append(BrokenPlugin(plugin, name if isinstance(name, str) else None, problem, what=what))
             return
         if isinstance(item, ContactPart):
             self._parts[item.name] = (item, (plugin, dist, version))
@@ -678,6 +688,12 @@ def history_overrun(law: ContactLaw, constants_row, effective_radius: float, eff
         previous = overlap
         written = np.flatnonzero(buffer[size:] != _GUARD_VALUE)
         if written.size:
+            by_part = ""
+            if law.parts:  # each part writes its own slice from its own index 0: say whose slots are where
+                own = size - sum(p.history_size for p in law.parts)  # a law given rolling or twisting parts
+                slots = ", ".join(([f"the law's own {own}"] if own else [])
+                                  + [f"{p.kind} '{p.name}' {p.history_size}" for p in law.parts])
+                by_part = f" (by part, in order: {slots}; each part writes its own slice, from its index 0)"
             return False, (f"call {step} of {steps - 1}: the force wrote history[{size + int(written[0])}]; the law "
-                           f"declares {size} slot(s)")
+                           f"declares {size} slot(s){by_part}")
     return True, f"{steps - 1} calls along an oblique load-unload path"

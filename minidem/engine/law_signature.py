@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import inspect
 import os
+import re
 
 import numba
 
@@ -22,6 +23,24 @@ def _numba_cause(exc: Exception) -> str:
               and "minidem_kernel_" not in line and f"minidem{os.sep}kernel.py" not in line]
     where = f" ({places[-1]})" if places else ""
     return ("; ".join(message[:2]) or lines[0]) + where
+
+
+def _undefined_name_line(func, exc: Exception) -> str:
+    """Where a name numba found undefined is used in ``func`` (its error names no line,
+    only the name): ``" (line N uses 'name')"``, or "" when it is not found."""
+    found = re.search(r"name '(\w+)' is not defined", str(exc))
+    if not found or "line " in str(exc).split(found.group(0), 1)[1][:200]:
+        return ""
+    try:
+        lines, first = inspect.getsourcelines(func)
+    except (OSError, TypeError):
+        return ""
+    use = re.compile(rf"(?<![\w.]){re.escape(found.group(1))}(?!\w)")
+    for offset, text in enumerate(lines):
+        code = text.split("#", 1)[0]
+        if use.search(code) and not code.lstrip().startswith(("def ", "@")):
+            return f" (line {first + offset} uses '{found.group(1)}')"
+    return ""
 
 
 _ROW, _FLOAT, _VECTOR = (numba.types.Array(numba.types.float64, 1, "C"), numba.types.float64,
@@ -61,7 +80,7 @@ def _compiled_alone(function, signature, count: int, what: str, shape: str) -> s
     try:
         function.compile(signature)
     except numba.core.errors.NumbaError as alone:
-        return f"its {what} {where} does not compile: {_numba_cause(alone)}"
+        return f"its {what} {where} does not compile: {_numba_cause(alone)}{_undefined_name_line(func, alone)}"
     returned = function.overloads[signature].signature.return_type
     number = (numba.types.Float, numba.types.Integer)
     if count == 0:

@@ -386,7 +386,7 @@ class RunLoop:
             series = {key: value[:snap["loop"]["frames"]] for key, value in series.items()}
         step = snap["loop"]["steps"]
         meta = {"kind": kind, "source": self.scene.source, "minidem": __version__, "kernel": self.kernel.__name__,
-                "law": sim.law.name, "law_package": f"{sim.entry.distribution} {sim.entry.version}",
+                "law": sim.law.name, "law_package": sim.entry.packages,
                 "fingerprint": self.fingerprint, "dt": sim.dt, "step": step, "time": self.start_time + step * sim.dt,
                 "total_steps": self.total_steps, "loop": snap["loop"], "frames_series": series}
         return self.checkpoint.write(Path(self.policy.directory) / name, arrays, meta)
