@@ -68,7 +68,11 @@ compile that fails included) and as it was after: what the compile left is colle
 the next collection, as any garbage. First compile of scenarios/oblique.toml's kernel in
 a fresh process (the helper off, 2-core AMD EPYC, alternating): 3.30, 3.80, 5.36, 4.45 s
 of CPU against 4.02, 4.28, 5.80, 5.24 s; in a process that compiled it once before,
-3.34 s against 4.55 (medians of four). The run's peak memory: 239 MB against 215 MB.
+3.34 s against 4.55 (medians of four). The cost is memory while a compile runs, the
+cycles it made held until it ends: a first run's peak 239 MB against 215 MB
+(scenarios/oblique.toml), 499 MB against 420 MB (scenarios/hopper.toml, the largest
+kernel; found by a reviewer). The collector is off for the whole process meanwhile (other
+threads too), as numba compiles one function at a time anyway.
 
 A numba whose internals no longer match (no ``copy`` module or no ``inline_ir`` in its
 inliner; no ``TargetConfig.values`` or options without defaults; no compile events) is
@@ -245,8 +249,11 @@ class _CollectorPause(event.Listener):
         self.depth += 1
 
     def on_end(self, ev):
-        self.depth -= 1
+        # never below zero: an end without its start (another listener raised before this
+        # one was told of the start) must not leave the pause on for good
+        self.depth = max(self.depth - 1, 0)
         if self.depth == 0 and self.resume:
+            self.resume = False
             gc.enable()
 
 

@@ -97,6 +97,18 @@ def test_the_collector_pauses_for_a_compile_and_only_then(seen):
         gc.enable()
 
 
+def test_an_end_without_its_start_leaves_the_collector_as_it_was():
+    # another listener raising on a start stops numba telling the pause of it, and the end
+    # still comes: the count must not go below zero (else every later compile would leave
+    # the collector off for good)
+    pause = compile_speed._COLLECTOR_PAUSE
+    assert pause.depth == 0
+    pause.on_end(None)
+    assert pause.depth == 0 and gc.isenabled()
+    assert numba.njit(lambda x: x + 2.0)(1.0) == 3.0
+    assert pause.depth == 0 and gc.isenabled()
+
+
 def _numba_values(config):
     # numba's own TargetConfig.values (numba/core/targetconfig.py, 0.68)
     return {k: getattr(config, k) for k in config.options}

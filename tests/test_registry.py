@@ -147,7 +147,8 @@ FAKE_PLUGINS = {
         def undefined_name_force(constants, effective_radius, effective_mass, normal_overlap,
                                  normal_overlap_increment, normal_velocity, tangential_increment,
                                  tangential_velocity, history):
-            stiffness = constants[0]
+            """stiffnes: the word in a docstring or a comment is not a use of the name"""
+            stiffness = constants[0]  # not stiffnes
             return stiffnes * normal_overlap, 0.0, 0.0, 0.0  # noqa: F821 - the typo under test
 
         def prepare_from_an_unset_parameter(pair, params):

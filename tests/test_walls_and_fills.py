@@ -12,6 +12,7 @@ import math
 from pathlib import Path
 
 import meshio
+import numba
 import numpy as np
 import pytest
 
@@ -296,6 +297,47 @@ def test_a_linear_dashpot_touched_at_the_start_is_the_plane_impact_on_a_mesh_fac
         got = rebound(result.initial_velocity[p], result.velocity[p], normal, tangent)
         assert got["en"] == pytest.approx(want["en"], rel=1e-8), p
         assert got["et"] == pytest.approx(want["et"], rel=1e-8), p
+
+
+@numba.njit(cache=True)
+def first_touch_speed_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+                            normal_velocity, tangential_increment, tangential_velocity, history):
+    if history[0] == 0.0:
+        history[0] = 1.0 + abs(normal_velocity)  # a law recording the speed at first touch
+    return constants[0] * max(normal_overlap, 0.0), 0.0, 0.0, 0.0
+
+
+def test_a_mesh_contact_touched_at_the_start_that_goes_no_further_drops_its_history(tmp_path, monkeypatch):
+    # A touch at t = 0 is a contact (as at a plane): what the law writes there is its
+    # history, and a contact that ends drops it (HistorySlot: zero at every first touch).
+    # Here the sphere touches a mesh face at the start moving into it at 1 nm/s, and
+    # gravity pulls it away at once: at the end it is apart and the slot must be zero
+    # (it kept 1 + v before the fix, found by a reviewer; planes and cylinders dropped it).
+    from minidem.contact import ContactLaw, HistorySlot, Parameter, laws
+
+    law = ContactLaw(name="first_touch_speed", description="records the speed at first touch",
+                     parameters=(Parameter("stiffness", 1e6, "N/m", "normal stiffness", low=0.0, low_open=True),),
+                     constants=("stiffness",), history=(HistorySlot("impact_speed", "speed at first touch"),),
+                     prepare=lambda pair, params: {"stiffness": params["stiffness"]}, force=first_touch_speed_force,
+                     frictional=False)
+    registry = laws.load_registry()
+    registry.add(law)
+    monkeypatch.setattr(laws, "_REGISTRY", registry)
+    points, faces = grid_mesh(z=MESH_Z)
+    write_mesh(tmp_path / "grid.stl", points, faces)
+    scene = scenario.build_scene({
+        "materials": {"glass": GLASS}, "contact": {"law": "first_touch_speed"},
+        "walls": [{"type": "mesh", "file": "grid.stl", "material": "glass"}],
+        "particles": [{"position": [0.07, 0.12, MESH_Z + RADIUS], "velocity": [0.0, 0.0, -1e-9], "radius": RADIUS,
+                       "material": "glass"}],
+        "run": {"stop": "time", "end_time": 2e-6, "gravity": [0.0, 0.0, 50.0]}, "output": {"vtk": False},
+    }, str(tmp_path / "scene.toml"))
+    sim = simulation.Simulation(scene, registry=registry)
+    assert sim.kernel.END_VELOCITY and sim.kernel.MESHES
+    result = sim.run()
+    history, overlap = sim.state.meshes[4], sim.state.meshes[5]
+    assert result.position[0, 2] - MESH_Z - RADIUS > 0.0 and (overlap < 0.0).all()  # apart
+    assert not history.any(), history
 
 
 # ---------------------------------------------------------------------------------

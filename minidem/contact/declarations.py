@@ -40,9 +40,7 @@ COUPLE_ARGUMENTS = ("relative_spin", "normal", "dt")
 
 
 def _is_number(value) -> bool:
-    """Whether ``float(value)`` gives a number (None, a string or a sequence does not)."""
-    if isinstance(value, str):
-        return False
+    """Whether ``float(value)`` gives a number (None or a sequence does not)."""
     try:
         float(value)
     except (TypeError, ValueError):

@@ -385,8 +385,11 @@ def _parameter_problem(p: Parameter) -> str | None:
     """What is wrong with a parameter's declaration itself (its name, unit, description
     and bounds), before its default is checked: ``minidem laws`` prints every field, and
     a value must be able to pass the bounds."""
-    if not isinstance(p.name, str) or not p.name.isidentifier():
-        return f"parameter name {p.name!r} must be a name a scenario's [contact] table can use (letters, digits, _)"
+    import numpy as np  # here, as below: numba has imported it by the time a plugin registers
+
+    if not isinstance(p.name, str) or not re.fullmatch(r"[A-Za-z0-9_-]+", p.name):
+        return (f"parameter name {p.name!r} must be a key a scenario's [contact] table can use bare "
+                "(letters, digits, _ and -)")
     for field in ("unit", "description"):
         value = getattr(p, field)
         if not isinstance(value, str) or not value.strip():
@@ -394,10 +397,10 @@ def _parameter_problem(p: Parameter) -> str | None:
                     + (' (write "-" for a number without a unit)' if field == "unit" else ""))
     for field in ("low", "high"):
         value = getattr(p, field)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real) or math.isnan(value):
             return f"parameter '{p.name}': {field} must be a number (or -inf/inf for none), got {value!r}"
     for field in ("low_open", "high_open", "required"):
-        if not isinstance(getattr(p, field), bool):
+        if not isinstance(getattr(p, field), (bool, np.bool_)):
             return f"parameter '{p.name}': {field} must be True or False, got {getattr(p, field)!r}"
     if p.low > p.high or (p.low == p.high and (p.low_open or p.high_open)):
         return f"parameter '{p.name}': its bounds {p.bounds_text()} admit no value (low must be below high)"

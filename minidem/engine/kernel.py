@@ -859,6 +859,8 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                     if TRACK:
                         note_transitions(stats, time, dt, overlap, previous)
                     if overlap <= 0.0 and not touching_at_start:
+                        if previous >= 0.0:  # as at a plane: also a touch at the start that went no further
+                            mesh_history[k, :] = 0.0
                         continue
                     if overlap >= ri:
                         fault(status, TUNNELLED, i, t, TRIANGLE)

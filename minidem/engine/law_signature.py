@@ -6,8 +6,11 @@ and, when a law breaks the kernel's compilation, why, in terms of the law's own 
 from __future__ import annotations
 
 import inspect
+import io
 import os
 import re
+import textwrap
+import tokenize
 
 import numba
 
@@ -27,19 +30,19 @@ def _numba_cause(exc: Exception) -> str:
 
 def _undefined_name_line(func, exc: Exception) -> str:
     """Where a name numba found undefined is used in ``func`` (its error names no line,
-    only the name): ``" (line N uses 'name')"``, or "" when it is not found."""
+    only the name): ``" (line N uses 'name')"``, or "" when it is not found. Read as
+    Python tokens, so a string or a comment that holds the word is not taken for it."""
     found = re.search(r"name '(\w+)' is not defined", str(exc))
     if not found or "line " in str(exc).split(found.group(0), 1)[1][:200]:
         return ""
     try:
         lines, first = inspect.getsourcelines(func)
-    except (OSError, TypeError):
+        tokens = list(tokenize.generate_tokens(io.StringIO(textwrap.dedent("".join(lines))).readline))
+    except (OSError, TypeError, tokenize.TokenError, IndentationError):
         return ""
-    use = re.compile(rf"(?<![\w.]){re.escape(found.group(1))}(?!\w)")
-    for offset, text in enumerate(lines):
-        code = text.split("#", 1)[0]
-        if use.search(code) and not code.lstrip().startswith(("def ", "@")):
-            return f" (line {first + offset} uses '{found.group(1)}')"
+    for token in tokens:
+        if token.type == tokenize.NAME and token.string == found.group(1):
+            return f" (line {first + token.start[0] - 1} uses '{found.group(1)}')"
     return ""
 
 

@@ -320,6 +320,10 @@ class RunLoop:
                     sim.rebuild(state)
                 self.first_call()
         except (numba.core.errors.NumbaError, ValueError, TypeError) as exc:
+            # numba's own errors in the compile; and the bare ValueError or TypeError of
+            # some return values, in the compile or at the first call (a list of three
+            # where the kernel unpacks four): put to the force compiled alone, re-raised
+            # as they are when it is not at fault
             error = law_error(sim.law, sim.entry, exc)
             if error is exc:
                 raise

@@ -195,11 +195,8 @@ class Battery:
         size = self.law.history_size
         try:
             passed, detail = laws.history_overrun(self.law, row, radius, mass, duration)
-        except (numba.core.errors.NumbaError, ValueError, TypeError) as exc:  # the force does not compile: say where, exit 2
-            error = law_signature.law_error(self.law, self.entry, exc)
-            if error is exc:
-                raise
-            raise error from exc
+        except numba.core.errors.NumbaError as exc:  # the force does not compile: say where, exit 2
+            raise law_signature.law_error(self.law, self.entry, exc) from exc
         # not judged (the force raised on this smooth path) fails here: the battery's
         # engine runs would call it on history rows it may overrun
         return [Check("history stays in its declared slots", passed is True, detail, f"writes only history[0:{size}]",
