@@ -113,25 +113,20 @@ def _alone_problem(law: declarations.ContactLaw) -> str | None:
     return None
 
 
-def force_problem(law: declarations.ContactLaw, exc: Exception) -> str:
-    """Why a law's force function broke the kernel's compilation: compiled alone with the
-    engine's argument types (each part of a combination with its kind's), so the message
-    names the law's or the part's function and file (and a wrong return value), not the
-    kernel line that called it."""
-    return _alone_problem(law) or f"its force function does not compile in the engine: {_numba_cause(exc)}"
-
-
 def law_error(law: declarations.ContactLaw, entry, exc: Exception) -> Exception:
     """The error to raise for ``exc``, raised while the kernel of ``law`` (registered as
     ``entry``) compiled: a LawError naming the law, its plugin and what is wrong with its
-    force, for numba's own errors; for another exception (numba raises a bare ValueError
+    force, for numba's own errors (the force compiled alone with the engine's argument
+    types, each part of a combination with its kind's, so that the message names the
+    law's or the part's function and file, not the kernel line that called it); for
+    another exception (numba raises a bare ValueError
     or TypeError on some return values, e.g. a list where the engine unpacks a tuple) the
     same when compiling the force alone finds the fault, else ``exc`` itself (not the
     law's fault)."""
     from minidem.contact.laws import LawError
 
     if isinstance(exc, numba.core.errors.NumbaError):
-        problem = force_problem(law, exc)
+        problem = _alone_problem(law) or f"its force function does not compile in the engine: {_numba_cause(exc)}"
     else:
         try:
             problem = _alone_problem(law)
