@@ -281,6 +281,8 @@ def test_broken_parts_are_isolated_and_named(plugin):
     # named as what they are, not as laws (`minidem laws` prints "BROKEN plugin 'p' normal part 'x'")
     assert (broken["plugin_short"].what, broken["plugin_heat"].what, broken["bad_preset"].what) == (
         "damping part", "part", "preset")
+    with pytest.raises(laws.LawError, match="^preset 'bad_preset' from plugin 'parts_plugin' is broken: "):
+        plugin.entry("bad_preset")
     # the plugin's good part combines with built-in ones
     assert plugin.entry("plugin_spring+viscous+linear_history").law.frictional
     assert [p.name for p in plugin.parts("normal")] == ["dmt", "hertz", "hooke", "jkr", "plugin_spring", "sjkr"]

@@ -317,7 +317,7 @@ class LawRegistry:
             return self.combination(preset.parts, preset.parameters, preset.name)
         for b in self.broken:
             if b.law is not None and (key == b.law or key in b.aliases):
-                raise LawError(f"law '{name}' from plugin '{b.plugin}' is broken: {b.reason}")
+                raise LawError(f"{b.what} '{name}' from plugin '{b.plugin}' is broken: {b.reason}")
         candidates = self.names() + sorted(self._aliases) + [p.name for p in self.presets()]
         close = difflib.get_close_matches(str(key), candidates, n=1)
         hint = f" Did you mean '{close[0]}'?" if close else ""
