@@ -48,8 +48,9 @@ def _is_number(value) -> bool:
     return True
 
 
-def _located(func) -> str:
-    """``name in file, line N`` of a Python function, as error messages name it."""
+def located(func) -> str:
+    """``name in file, line N`` of a Python function, as error messages name it (the
+    law's hooks here, its force and parts' functions in minidem.engine.law_signature)."""
     try:
         _, line = inspect.getsourcelines(func)
         return f"{getattr(func, '__qualname__', func)} in {inspect.getsourcefile(func)}, line {line}"
@@ -316,7 +317,7 @@ class ContactLaw:
             raise LawError(f"law '{self.name}': prepare() did not return constants {missing}")
         not_numbers = {c: produced[c] for c in self.constants if not _is_number(produced[c])}
         if not_numbers:
-            raise LawError(f"law '{self.name}': prepare() ({_located(self.prepare)}) must give each constant as a "
+            raise LawError(f"law '{self.name}': prepare() ({located(self.prepare)}) must give each constant as a "
                            f"number, got {', '.join(f'{c}={v!r}' for c, v in not_numbers.items())} (a parameter "
                            "whose default is None arrives as None when the scenario does not set it: derive the "
                            "constant's value from the others there)")

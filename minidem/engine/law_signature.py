@@ -75,11 +75,7 @@ def _compiled_alone(function, signature, count: int, what: str, shape: str) -> s
     """Why ``function`` does not compile with ``signature`` or does not return ``count``
     numbers (0: one number), naming its file and line; None when it is fine."""
     func = function.py_func
-    try:
-        _, line = inspect.getsourcelines(func)
-        where = f"{func.__qualname__} in {inspect.getsourcefile(func)}, line {line}"
-    except (OSError, TypeError):
-        where = func.__qualname__
+    where = declarations.located(func)
     try:
         function.compile(signature)
     except numba.core.errors.NumbaError as alone:
