@@ -139,6 +139,12 @@ FAKE_PLUGINS = {
             return constants[0] * normal_overlap, 0.0, 0.0, 0.0
 
         @numba.njit
+        def old_couple_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
+                             normal_velocity, tangential_increment, tangential_velocity, history, relative_spin,
+                             normal, dt):
+            return constants[0] * normal_overlap, 0.0, 0.0, 0.0, -relative_spin[0] * dt, 0.0, 0.0
+
+        @numba.njit
         def list_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
                        normal_velocity, tangential_increment, tangential_velocity, history):
             return [constants[0] * normal_overlap, 0.0, 0.0]  # a list, not a tuple (numba: a bare ValueError)
@@ -169,6 +175,7 @@ FAKE_PLUGINS = {
             registry.add(law("fake_bound", force=bound_force, aliases=("fake_b",)))
             registry.add(law("fake_three_values", force=three_values_force))
             registry.add(law("fake_short", force=short_force))
+            registry.add(law("fake_old_couple", force=old_couple_force, couples=True))
             registry.add(law("fake_bad_time", contact_time=broken_contact_time))
             registry.add(law("fake_bad_stiffness", stiffness=stiffness_of_a_sign_slip))
             registry.add(law("fake_negative_time", contact_time=lambda *args: -1.0))
@@ -331,6 +338,9 @@ def test_a_plugin_alias_never_takes_a_builtin_name_and_aliases_are_checked(fake_
     # a compiled function bound under another name is imported by that name
     assert declarations.force_import_name(registry.get("fake_bound")) == ("fake_names", "bound_force")
     assert "takes 4 arguments" in broken["fake_short"].reason and "tangential_velocity" in broken["fake_short"].reason
+    # a couple law written for the earlier contract (relative_spin, normal, dt): the same
+    # count, so it is recognised by its names and told what the engine passes now
+    assert "now passes (rotation_increment, relative_spin, normal)" in broken["fake_old_couple"].reason
     assert "'contact_time' must be a function or None, got float" in broken["fake_number_time"].reason
 
 

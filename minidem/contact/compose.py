@@ -39,7 +39,7 @@ import numba
 
 from minidem.contact import declarations
 
-_GENERATOR_VERSION = "4"  # bump when the generated source below changes shape
+_GENERATOR_VERSION = "5"  # bump when the generated source below changes shape
 
 
 def check_combination(parts: tuple[declarations.ContactPart, ...]) -> None:
@@ -247,16 +247,16 @@ def _couple_lines(call: dict, lines: list, imports: list, load: str = "normal_fo
     the load of their limits (the variable named ``load``) from the lines before them."""
     if "rolling" in call or "twisting" in call:
         imports.append("from minidem.contact.compose import split_spin")
+        lines.append("    rolling_increment, twisting_increment = split_spin(rotation_increment, normal)")
         lines.append("    rolling_velocity, twisting_velocity = split_spin(relative_spin, normal)")
         lines.append("    mx, my, mz = 0.0, 0.0, 0.0")
     if "rolling" in call:
         lines.append(f"    mx, my, mz = rolling_part(\n        {call['rolling'][0]}, effective_radius, effective_mass, "
-                     f"normal_overlap, contact_radius, stiffness, {load},\n        (rolling_velocity[0] * dt, "
-                     "rolling_velocity[1] * dt, rolling_velocity[2] * dt), rolling_velocity, "
-                     f"{call['rolling'][1]})")
+                     f"normal_overlap, contact_radius, stiffness, {load},\n        rolling_increment, "
+                     f"rolling_velocity, {call['rolling'][1]})")
     if "twisting" in call:
         lines.append(f"    twist = twisting_part(\n        {call['twisting'][0]}, effective_radius, effective_mass, "
-                     f"normal_overlap, contact_radius, stiffness, {load}, twisting_velocity * dt,\n"
+                     f"normal_overlap, contact_radius, stiffness, {load}, twisting_increment,\n"
                      f"        twisting_velocity, {call['twisting'][1]})")
         lines.append("    mx, my, mz = mx + twist * normal[0], my + twist * normal[1], mz + twist * normal[2]")
 
@@ -357,7 +357,8 @@ def compose_with_law(law: declarations.ContactLaw, normal: declarations.ContactP
 @numba.njit(cache=True, inline="always")
 def split_spin(relative_spin, normal):
     """The spin of the first body relative to the second split into its rolling part (in
-    the tangent plane, a 3-tuple, rad/s) and its twisting part (along n, rad/s)."""
+    the tangent plane, a 3-tuple, rad/s) and its twisting part (along n, rad/s); the
+    same split of a rotation over the step (rad)."""
     wx, wy, wz = relative_spin
     nx, ny, nz = normal
     along = wx * nx + wy * ny + wz * nz

@@ -35,8 +35,11 @@ from minidem.errors import MinidemError
 FORCE_ARGUMENTS = ("constants", "effective_radius", "effective_mass", "normal_overlap", "normal_overlap_increment",
                    "normal_velocity", "tangential_increment", "tangential_velocity", "history")
 # a law with couples (ContactLaw.couples: rolling or twisting resistance) also gets these,
-# and returns (fn, ftx, fty, ftz, mx, my, mz), the couple on the first body
-COUPLE_ARGUMENTS = ("relative_spin", "normal", "dt")
+# and returns (fn, ftx, fty, ftz, mx, my, mz), the couple on the first body. As with the
+# tangential pair above, the increment (what a spring integrates: the relative spin of
+# the drift times dt, exact to second order) and the velocity (what a dashpot reads: at
+# the step's end where the couple acts, when the kernel predicts it) are handed apart
+COUPLE_ARGUMENTS = ("rotation_increment", "relative_spin", "normal")
 
 
 def _is_number(value) -> bool:
@@ -367,12 +370,13 @@ PART_ARGUMENTS = {
                    "contact_radius", "elastic_normal_force", "normal_force", "tangential_increment",
                    "tangential_velocity", "history"),
     # -> (mx, my, mz) N m, the couple on the first body (the second gets its opposite);
-    # rolling_increment: the spin of the first body relative to the second, in the
-    # tangent plane, times dt (rad; a vector of the tangent plane, like a history vector)
+    # rolling_increment: the rotation of the first body relative to the second over the
+    # step, in the tangent plane (rad; a vector of the tangent plane, like a history
+    # vector); rolling_velocity: that relative spin at the step's end (rad/s)
     "rolling": ("constants", "effective_radius", "effective_mass", "normal_overlap", "contact_radius",
                 "normal_stiffness", "normal_force", "rolling_increment", "rolling_velocity", "history"),
     # -> the couple about the normal on the first body, N m (positive along n);
-    # twisting_increment: the relative spin along n times dt (rad)
+    # twisting_increment: the relative rotation about n over the step (rad)
     "twisting": ("constants", "effective_radius", "effective_mass", "normal_overlap", "contact_radius",
                  "normal_stiffness", "normal_force", "twisting_increment", "twisting_velocity", "history"),
 }

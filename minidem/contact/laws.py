@@ -25,6 +25,7 @@ import pluggy
 
 from minidem.contact import hookspecs
 from minidem.contact.declarations import (
+    COUPLE_ARGUMENTS,
     ENERGY_ROLES,
     FRICTION_LOAD_ARGUMENTS,
     KINDS,
@@ -485,6 +486,11 @@ def _preset_problem(preset) -> str | None:
     return None
 
 
+# a couple law's last arguments until 2026-11-28 (one spin for the springs' increments and
+# the dashpots alike), recognised to say what changed
+_OLD_COUPLE_ARGUMENTS = ("relative_spin", "normal", "dt")
+
+
 def _compiled_function_problem(function, field: str, arguments: tuple[str, ...]) -> str | None:
     """Why ``function`` cannot be imported into the kernel and called with ``arguments``."""
     if not hasattr(function, "py_func"):
@@ -501,6 +507,11 @@ def _compiled_function_problem(function, field: str, arguments: tuple[str, ...])
     if len(given) != len(arguments):
         return (f"'{field}' ({func.__qualname__}) takes {len(given)} arguments; the engine calls it with "
                 f"{len(arguments)}: ({', '.join(arguments)})")
+    if tuple(p.name for p in given[-3:]) == _OLD_COUPLE_ARGUMENTS and arguments[-3:] == COUPLE_ARGUMENTS:
+        # the same count, other meanings: numba's typing error would not say why
+        return (f"'{field}' ({func.__qualname__}) takes ({', '.join(_OLD_COUPLE_ARGUMENTS)}) last, the couple "
+                f"arguments of an earlier minidem; the engine now passes ({', '.join(COUPLE_ARGUMENTS)}): the "
+                "step's relative rotation for springs (was relative_spin * dt) and the relative spin for dashpots")
     return None
 
 
@@ -681,7 +692,7 @@ def history_overrun(law: ContactLaw, constants_row, effective_radius: float, eff
                      velocity, history)
         if law.couples:
             spin = (40.0 * math.cos(2.0 * phase), 20.0 * math.sin(3.0 * phase), 30.0 * math.cos(phase))
-            arguments += (spin, (0.0, 0.0, 1.0), dt)
+            arguments += ((spin[0] * dt, spin[1] * dt, spin[2] * dt), spin, (0.0, 0.0, 1.0))
         try:
             force(*arguments)
         except NumbaError:

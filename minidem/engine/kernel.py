@@ -9,7 +9,7 @@ Scene shape flags ("model only what a scene needs": a branch on a False flag is
 removed by the compiler, so a single impact pays nothing for pairs or meshes):
 
     SPIN       angular velocities and torques (the law can produce tangential forces)
-    COUPLES    the law also takes the relative spin and returns a couple (rolling or
+    COUPLES    the law also takes the relative rotation and spin and returns a couple (rolling or
                twisting resistance): applied to i, its opposite to j
     REACH      the law acts beyond touch (adhesion): a contact lives while its overlap
                is above -reach, the last column of its constants row (the law sees the
@@ -357,11 +357,16 @@ def contact_response(law, constants_row, history, overlap, previous, normal, pre
             lever_i, lever_j, nx, ny, nz)
     mx, my, mz = 0.0, 0.0, 0.0
     if COUPLES:
-        # rolling and twisting resistance: the law sees the spin of i relative to j and
-        # returns a pure couple on i (j gets its opposite: no moment of a force to balance)
+        # rolling and twisting resistance: the law sees the rotation of i relative to j
+        # over the step (the drift's spins, as the displacement increment) and the
+        # relative spin at the step's end (to_end, as the contact velocity: a rolling or
+        # twisting dashpot second order), and returns a pure couple on i (j gets its
+        # opposite: no moment of a force to balance)
+        sx, sy, sz = wi[0] - wj[0], wi[1] - wj[1], wi[2] - wj[2]
         fn, ftx, fty, ftz, mx, my, mz = law(
             constants_row, effective_radius, effective_mass, overlap, overlap - max(previous, 0.0), normal_velocity,
-            increment, tangential_velocity, history, (wi[0] - wj[0], wi[1] - wj[1], wi[2] - wj[2]), normal, dt)
+            increment, tangential_velocity, history, (sx * dt, sy * dt, sz * dt),
+            (sx + to_end[3] - to_end[6], sy + to_end[4] - to_end[7], sz + to_end[5] - to_end[8]), normal)
         ok = finite(fn, ftx, fty, ftz) and finite(mx, my, mz, 0.0)
     else:
         fn, ftx, fty, ftz = law(constants_row, effective_radius, effective_mass, overlap,

@@ -52,8 +52,9 @@ _ROW, _FLOAT, _VECTOR = (numba.types.Array(numba.types.float64, 1, "C"), numba.t
 _HISTORY = contact_history.contact_history
 # the argument types the kernel passes a law's force function (minidem.contact.declarations.FORCE_ARGUMENTS)
 _FORCE_SIGNATURE = (_ROW, *(_FLOAT,) * 5, _VECTOR, _VECTOR, _HISTORY)
-# a law with a couple (law.couples) also takes the relative spin, the normal and dt
-_COUPLE_FORCE_SIGNATURE = (*_FORCE_SIGNATURE, _VECTOR, _VECTOR, _FLOAT)
+# a law with a couple (law.couples) also takes the relative rotation over the step, the
+# relative spin and the normal
+_COUPLE_FORCE_SIGNATURE = (*_FORCE_SIGNATURE, _VECTOR, _VECTOR, _VECTOR)
 
 
 def force_signature(law: declarations.ContactLaw) -> tuple:
