@@ -66,7 +66,10 @@ def _override_texts(overrides) -> list[str]:
         return [overrides]
     if isinstance(overrides, Mapping):
         return [f"{key}={_toml_text(value)}" for key, value in overrides.items()]
-    return [str(text) for text in overrides]
+    if isinstance(overrides, (list, tuple)) and all(isinstance(text, str) for text in overrides):
+        return list(overrides)
+    raise TypeError(f"overrides: expected a dict of dotted keys ({{\"impact.angle_deg\": 10.0}}) or a list of "
+                    f"'KEY=VALUE' texts, got {type(overrides).__name__} {overrides!r:.60}")
 
 
 class Scenario:
@@ -104,10 +107,10 @@ class Scenario:
         self.data = scenario.apply_overrides(self.data, texts)
         return self
 
-    def material(self, name: str, *, youngs_modulus: float, poisson_ratio: float, density: float) -> "Scenario":
-        """``[materials.NAME]``: Young's modulus (Pa), Poisson ratio, density (kg/m^3)."""
-        self.data.setdefault("materials", {})[name] = _plain(
-            {"youngs_modulus": youngs_modulus, "poisson_ratio": poisson_ratio, "density": density})
+    def material(self, name: str, **keys) -> "Scenario":
+        """``[materials.NAME]``: youngs_modulus (Pa), poisson_ratio, density (kg/m^3); checked
+        with the rest (a misspelt key is named, with the key it may mean)."""
+        self.data.setdefault("materials", {})[name] = _plain(keys)
         return self
 
     def contact(self, law: str, **parameters) -> "Scenario":
@@ -406,7 +409,8 @@ def sweep(scenario, cases: Mapping[str, Sequence] | None = None, overrides=None,
 
     ``scenario``: a :class:`Scenario`, a file path or a dict; with a ``[sweep]`` table, or
     a base scenario and ``cases`` (dotted key -> list of values, as ``sweep.cases``; given,
-    it replaces the scenario's). ``overrides``: applied to the base scenario first, as
+    it replaces the scenario's, and with them ``sweep.series_labels``, ``sweep.together``
+    and an ``sweep.abscissa`` it does not vary; the other [sweep] keys stay). ``overrides``: applied to the base scenario first, as
     ``--set``. Every case is validated before any runs (:class:`ScenarioError` names the
     case and the key). ``workers``: local processes (default ``sweep.workers``; 0: one per
     CPU; 1: in this process). ``out``: write what ``minidem run`` writes for a sweep
@@ -420,7 +424,12 @@ def sweep(scenario, cases: Mapping[str, Sequence] | None = None, overrides=None,
     given = _scenario(scenario, overrides)
     data = copy.deepcopy(given.data)
     if cases is not None:
-        data["sweep"] = {**(data.get("sweep") or {}), "cases": _plain(dict(cases))}
+        # the file's other [sweep] settings stay, but not those naming its cases' keys or
+        # counting their series: they would not fit the cases given
+        kept = {key: value for key, value in (data.get("sweep") or {}).items()
+                if key not in ("cases", "series_labels", "together")
+                and not (key == "abscissa" and value not in cases)}
+        data["sweep"] = {**kept, "cases": _plain(dict(cases))}
     if "sweep" not in data:
         raise ScenarioError(f"{given.source}: no [sweep] table and no cases given: pass cases={{\"impact.angle_deg\": "
                             "[...], ...}} or use minidem.run() for a single run")

@@ -83,7 +83,13 @@ def command_run(args) -> int:
     data = scenario.read_toml(args.file)
     # with --set sweep.KEY=..., a file without [sweep] makes a sweep too (checked as one): a
     # single run ignored it, and an unknown key with it
-    if sweep.has_sweep(scenario.apply_overrides(data, args.set or [])):
+    swept = sweep.has_sweep(scenario.apply_overrides(data, args.set or []))
+    if getattr(args, "case", None) is not None:
+        if not swept:
+            raise scenario.ScenarioError(f"{args.file}: --case {args.case}: the scenario has no [sweep] table, so "
+                                         "no cases: run it without --case")
+        args = sweep.case_alone(args, data)  # the case's values as --set, its own directory
+    elif swept:
         warmup.dismiss()  # a sweep's cases run in their own processes
         if args.resume and args.restart:
             raise scenario.ScenarioError(f"{args.file}: --resume and --restart contradict each other: a sweep "
@@ -393,6 +399,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--resume", action="store_true",
                      help="continue from OUT/checkpoint.npz (same file, --set and --out): the result is bit for "
                           "bit that of an uninterrupted run")
+    run.add_argument("--case", type=int, default=None, metavar="N",
+                     help="run case N of a [sweep] scenario alone, as a single run with its own files (VTK series "
+                          "included when output.vtk asks for it) in OUT/case_NNN (default OUT: the sweep's "
+                          "directory); N as sweep.csv's case column")
     run.set_defaults(handler=command_run)
 
     show = sub.add_parser("laws", help="list installed contact laws and broken plugins")

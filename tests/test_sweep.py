@@ -199,6 +199,54 @@ def test_sweep_keys_given_with_set_make_a_sweep_of_a_single_run_file(tmp_path, c
     rows = sweep.load_rows(tmp_path / "out" / "sweep.csv")
     assert [r["angle_deg"] for r in rows] == [10.0, 45.0] and all(r["status"] == "ok" for r in rows)
 
+def _sweep_file(directory: Path, extra: str = "") -> Path:
+    path = directory / "angles.toml"
+    path.write_text(OBLIQUE.read_text() + f'\n[sweep]\ncases = {{"impact.angle_deg" = {ANGLES!r}}}\nfigures = []\n'
+                    + extra)
+    return path
+
+
+def test_one_case_of_a_sweep_runs_alone_with_its_own_files(reference, tmp_path, capsys):
+    """`minidem run FILE --case N` runs case N as a single run (summary.json,
+    final_state.npz, a VTK series when asked) in OUT/case_NNN: the row of sweep.csv to
+    the bit, since a row is that single run. Before, docs/cli.md said to look at a case
+    with `--set KEY=VALUE`, which on a sweep file ran the whole sweep with the value
+    thrown away by every case (a review, 2026-11-28): that is now refused, naming the
+    key and --case."""
+    path = _sweep_file(tmp_path)
+    out = tmp_path / "out"
+    assert cli.main(["run", str(path), "--out", str(out), "--case", "3", "--quiet", "--set", "output.vtk=true"]) == 0
+    summary = json.loads((out / "case_003" / "summary.json").read_text())
+    row = reference[1][3]
+    assert summary["angle_deg"] == ANGLES[3] == row["angle_deg"]
+    assert all(summary[key] == row[key] for key in ("en", "et", "y1", "y2", "steps")), (summary, row)
+    assert (out / "case_003" / "particles.pvd").exists() and not (out / "sweep.csv").exists()
+    capsys.readouterr()
+    assert cli.main(["run", str(path), "--out", str(out), "--case", "6", "--quiet"]) == 2
+    assert "--case 6: the sweep has 6 case(s), 0 to 5" in capsys.readouterr().err
+    assert cli.main(["run", str(path), "--out", str(out), "--quiet", "--set", "impact.angle_deg=30"]) == 2
+    err = capsys.readouterr().err
+    assert "--set impact.angle_deg=30: 'impact.angle_deg' is varied by the [sweep]" in err and "--case N" in err
+    assert not (out / "sweep.csv").exists()
+    assert cli.main(["run", str(OBLIQUE), "--out", str(out), "--case", "0", "--quiet"]) == 2
+    assert "has no [sweep] table" in capsys.readouterr().err
+
+
+def test_cases_given_to_sweep_replace_the_settings_that_name_the_files_cases(tmp_path):
+    """minidem.sweep(file, cases=...) replaces the file's cases; its series labels (one
+    per law here) and an abscissa it no longer varies would not fit the new cases: they
+    go with them (before: 'sweep.series_labels: expected 1 labels, got 2', a review,
+    2026-11-28), and its other settings stay."""
+    import minidem
+
+    path = tmp_path / "laws.toml"
+    path.write_text(OBLIQUE.read_text() + '\n[sweep]\ncases = {"contact.law" = ["hmd", "ls"], "impact.spin" = [1.0]}\n'
+                    'series_labels = ["HMD", "LS"]\nabscissa = "impact.spin"\nfigures = []\n')
+    table = minidem.sweep(path, cases={"impact.angle_deg": [5.0, 45.0]}, workers=1)
+    assert list(table["angle_deg"]) == [5.0, 45.0] and not table.failed
+    assert table["y2"][1] == pytest.approx(-0.5, abs=1e-12)  # gross sliding at 45 deg: -5 mu (paper eq 8)
+
+
 # ---------------------------------------------------------------------------------
 # separate processes: a killed `minidem run`, and a real Dask cluster
 # ---------------------------------------------------------------------------------

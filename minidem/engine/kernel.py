@@ -176,11 +176,14 @@ def fault(status, code, particle, partner, kind):
 
 @numba.njit(cache=True, inline="always")
 def note_transitions(stats, time, dt, overlap, previous):
-    """First-touch and separation times, interpolated within the step."""
-    if overlap > 0.0 and previous <= 0.0 and stats[FIRST_CONTACT_TIME] < 0.0:
+    """First-touch and separation times, interpolated within the step. A contact live
+    at the run's first instant (the zero-length first call, dt = 0: a sphere placed
+    overlapping within the validator's tolerance, or moved there by analytic flight)
+    began then, whatever its last overlap at the list build said."""
+    if overlap > 0.0 and (previous <= 0.0 or dt == 0.0) and stats[FIRST_CONTACT_TIME] < 0.0:
         # clamped to the step: rounding may otherwise give a time just below zero, which
         # reads as 'no contact yet' and the run would never stop at separation
-        stats[FIRST_CONTACT_TIME] = max(time - dt * overlap / (overlap - previous), time - dt)
+        stats[FIRST_CONTACT_TIME] = time if dt == 0.0 else max(time - dt * overlap / (overlap - previous), time - dt)
     elif overlap <= 0.0 and previous > 0.0:
         stats[LAST_SEPARATION_TIME] = time - dt * (-overlap) / (previous - overlap)
 
@@ -221,7 +224,8 @@ def touches_at_start(dt, overlap, lives_above, size, dv, normal):
     """A sphere touching a plane or another sphere when the run starts (the zero-length
     first call, dt = 0: the paper's start, analytic flight's touch, Chung and Ooi's
     pairs), within the round-off of placing it there (_SAME_POINT of ``size``, its
-    radius or the pair's reach), and moving into it (``dv``, its velocity relative to
+    radius or the pair's reach, either side: a wall through z = 0.1 or with the normal
+    (0, 1, 1) leaves the sphere placed on it 1e-17 m in or out), and moving into it (``dv``, its velocity relative to
     the partner's, against ``normal``, from the partner to it): in contact from that
     instant, with the force of the touch itself, as in the reference solution. A linear
     dashpot's c v at zero overlap is the force's jump there, and a first step without it
@@ -230,7 +234,7 @@ def touches_at_start(dt, overlap, lives_above, size, dv, normal):
     law reads the touch's velocity at the step's end, the velocity of the touch itself
     here); at dt > 0 never, where the step that ends touching has not carried the
     contact."""
-    if not END_VELOCITY or dt != 0.0 or not lives_above - _SAME_POINT * size <= overlap <= lives_above:
+    if not END_VELOCITY or dt != 0.0 or not abs(overlap - lives_above) <= _SAME_POINT * size:
         return False
     return dv[0] * normal[0] + dv[1] * normal[1] + dv[2] * normal[2] < 0.0
 

@@ -220,7 +220,11 @@ class RunLoop:
 
     # -- the compiled steps ------------------------------------------------------
     def frame_step(self, index):
-        return int(round((index - self.flight_frames) * self.frame_interval / self.sim.dt))
+        """The step of frame ``index``: the first at or after its time, as the run's last
+        step is the first at or after run.end_time (rounded to the nearest, a frame due at
+        end_time fell one step before the end and the final state made a second frame,
+        a step later)."""
+        return int(math.ceil((index - self.flight_frames) * self.frame_interval / self.sim.dt - 1e-9))
 
     def call(self, start_step, n_steps, completing, trace, threads=None, dt=None, stop_at_separation=None,
              sampled=False):

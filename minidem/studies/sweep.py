@@ -27,6 +27,7 @@ journal lacks. A case that fails is a row with ``status = failed`` and the reaso
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import hashlib
@@ -652,6 +653,40 @@ def _energy_gain_notes(rows: list[dict]) -> list[str]:
             for law, cases in gained.items()]
 
 
+def _directory(args, sweep: SweepPlan) -> Path:
+    """Where ``minidem run`` writes a sweep: --out, output.directory, or out/<file stem>."""
+    return Path(args.out) if args.out else Path(
+        sweep.base.get("output", {}).get("directory") or Path("out") / Path(args.file).stem)
+
+
+def _refuse_swept_overrides(args, sweep: SweepPlan) -> None:
+    """A --set of a key the sweep varies would be set again by every case: refused."""
+    for text in args.set or []:
+        key = ".".join(scenario.parse_override(text)[0])
+        if key in sweep.keys:
+            raise ScenarioError(
+                f"{sweep.source}: --set {text}: '{key}' is varied by the [sweep] (sweep.cases), which sets it in "
+                f"every case. To run one case alone: --case N (N from sweep.csv's case column, 0 to "
+                f"{len(sweep.cases) - 1}); to sweep other values: --set 'sweep.cases={{...}}' or edit sweep.cases")
+
+
+def case_alone(args, data: dict):
+    """``minidem run FILE --case N``: the arguments of a single run of case N (its values
+    after the other --set values, its files in OUT/case_NNN)."""
+    sweep = plan(scenario.apply_overrides(data, args.set), str(args.file))
+    _refuse_swept_overrides(args, sweep)
+    if not 0 <= args.case < len(sweep.cases):
+        raise ScenarioError(f"{sweep.source}: --case {args.case}: the sweep has {len(sweep.cases)} case(s), "
+                            f"0 to {len(sweep.cases) - 1} (sweep.csv's case column)")
+    one = copy.copy(args)
+    one.set = [*(args.set or []), *sweep.overrides(args.case)]
+    one.out = str(_directory(args, sweep) / f"case_{args.case:03d}")
+    if not args.quiet:
+        print(f"minidem: {sweep.source}: case {args.case} of {len(sweep.cases)} alone: "
+              + ", ".join(sweep.overrides(args.case)))
+    return one
+
+
 def command(args, data: dict) -> int:
     """``minidem run`` of a scenario with a [sweep] section."""
     import sys
@@ -660,8 +695,8 @@ def command(args, data: dict) -> int:
 
     data = scenario.apply_overrides(data, args.set)
     sweep = plan(data, str(args.file))
-    directory = Path(args.out) if args.out else Path(
-        sweep.base.get("output", {}).get("directory") or Path("out") / Path(args.file).stem)
+    _refuse_swept_overrides(args, sweep)
+    directory = _directory(args, sweep)
     workers = getattr(args, "workers", None)
     if workers is not None and workers < 0:
         raise ScenarioError(f"--workers {workers}: must be >= 0 (0: one per CPU)")
@@ -675,7 +710,7 @@ def command(args, data: dict) -> int:
         if sweep.base.get("output", {}).get("vtk") or sweep.base.get("output", {}).get("contacts"):
             warnings.warn(f"{sweep.source}: output.vtk and output.contacts are ignored in a sweep (a case writes "
                           "only its row, and with sweep.keep_traces its trace): run one case alone for its "
-                          "series, `minidem run FILE --set KEY=VALUE`")
+                          "series, `minidem run FILE --case N`")
         if not args.quiet:
             print(f"minidem: {sweep.source}: sweep of {len(sweep.cases)} case(s) over {', '.join(sweep.keys)} "
                   f"on {executor.description}")
