@@ -109,7 +109,7 @@ class Scenario:
 
     def material(self, name: str, **keys) -> "Scenario":
         """``[materials.NAME]``: youngs_modulus (Pa), poisson_ratio, density (kg/m^3); checked
-        with the rest (a misspelt key is named, with the key it may mean)."""
+        with the rest (a misspelt key is named, with the valid ones)."""
         self.data.setdefault("materials", {})[name] = _plain(keys)
         return self
 
