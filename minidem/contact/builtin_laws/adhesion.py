@@ -170,7 +170,7 @@ def _dmt_supply_bound(pair, constants, effective_radius):
     """The attraction 2 pi gamma R* acts only while the Hertz force is smaller, up to d0
     with 4/3 E* sqrt(R*) d0^1.5 = 2 pi gamma R*: the well depth is below 2 pi gamma R* d0."""
     pull = 2.0 * math.pi * constants["surface_energy"] * effective_radius
-    return pull * (pull / (constants["hertz_modulus"] * math.sqrt(effective_radius))) ** (2.0 / 3.0)
+    return pull * (pull / (constants["hertz_prefactor"] * math.sqrt(effective_radius))) ** (2.0 / 3.0)
 
 
 def _hertz_less_attraction(name, description, parameter, function, supply_bound, pull_off, reference):
@@ -182,9 +182,9 @@ def _hertz_less_attraction(name, description, parameter, function, supply_bound,
         kind="normal",
         description=description,
         parameters=(parameter,),
-        constants=("hertz_modulus", parameter.name),
+        constants=("hertz_prefactor", parameter.name),
         history=(),
-        prepare=lambda pair, params, prepared: {"hertz_modulus": 4.0 / 3.0 * pair.effective_modulus,
+        prepare=lambda pair, params, prepared: {"hertz_prefactor": 4.0 / 3.0 * pair.effective_modulus,
                                                 parameter.name: params[parameter.name]},
         function=function,
         energy=("store", "supply"),
@@ -221,7 +221,7 @@ def sjkr_normal(constants, effective_radius, effective_mass, normal_overlap, nor
 
 def _sjkr_attraction(constants, effective_radius):
     """(K, c): Fn = K d^1.5 - c d."""
-    return (constants["hertz_modulus"] * math.sqrt(effective_radius),
+    return (constants["hertz_prefactor"] * math.sqrt(effective_radius),
             2.0 * math.pi * constants["cohesion_energy_density"] * effective_radius)
 
 

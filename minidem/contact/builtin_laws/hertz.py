@@ -28,10 +28,11 @@ from minidem.contact.builtin_laws.common import (
 from minidem.contact.declarations import ContactLaw, HistorySlot, Parameter
 
 # indices into the constants row (the order of HERTZ_CONSTANTS)
-HERTZ_MODULUS, SHEAR_MODULUS, MU, DAMPING, KAPPA, REVERSAL_CHECK, SPECIAL_CASE, PARTIAL_SLIP_REVERSAL_CHECK = range(8)
+(HERTZ_PREFACTOR, MINDLIN_PREFACTOR, MU, DAMPING, KAPPA, REVERSAL_CHECK, SPECIAL_CASE,
+ PARTIAL_SLIP_REVERSAL_CHECK) = range(8)
 HERTZ_CONSTANTS = (
-    "hertz_modulus",  # 4/3 E*, Pa: Fn = hertz_modulus sqrt(R*) d^1.5
-    "shear_modulus",  # 8 G*, Pa: kt = 8 G* a, a = sqrt(R* d)
+    "hertz_prefactor",  # 4/3 E*, Pa: Fn = hertz_prefactor sqrt(R*) d^1.5
+    "mindlin_prefactor",  # 8 G*, Pa: kt = 8 G* a, a = sqrt(R* d)
     "friction",
     "damping_factor",  # alpha: dashpot alpha sqrt(m* K) d^(1/4), K = 4/3 E* sqrt(R*)
     "stiffness_ratio",  # kappa = 4 G*/E* (eq 10)
@@ -43,8 +44,8 @@ HERTZ_CONSTANTS = (
 
 def prepare_hertz(pair, params):
     return {
-        "hertz_modulus": 4.0 / 3.0 * pair.effective_modulus,
-        "shear_modulus": 8.0 * pair.effective_shear_modulus,
+        "hertz_prefactor": 4.0 / 3.0 * pair.effective_modulus,
+        "mindlin_prefactor": 8.0 * pair.effective_shear_modulus,
         "friction": params["friction"],
         "damping_factor": hertz_damping_factor(params["restitution"]),
         "stiffness_ratio": pair.stiffness_ratio,
@@ -80,11 +81,11 @@ def hertz_normal_force(constants, effective_radius, effective_mass, normal_overl
     too (the compiler computes the same expression once).
     """
     contact_radius = math.sqrt(effective_radius * normal_overlap)
-    elastic = constants[HERTZ_MODULUS] * contact_radius * normal_overlap
+    elastic = constants[HERTZ_PREFACTOR] * contact_radius * normal_overlap
     if constants[DAMPING] == 0.0:
         return elastic
     return damped_normal_force(
-        elastic, constants[DAMPING] * math.sqrt(effective_mass * constants[HERTZ_MODULUS] * contact_radius)
+        elastic, constants[DAMPING] * math.sqrt(effective_mass * constants[HERTZ_PREFACTOR] * contact_radius)
         * normal_velocity)
 
 
@@ -281,7 +282,7 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
     # depends on the velocity. Without a dashpot (e = 1) the two are the elastic force,
     # computed as before.
     if constants[DAMPING] == 0.0:
-        stiffness = constants[HERTZ_MODULUS] * math.sqrt(effective_radius)
+        stiffness = constants[HERTZ_PREFACTOR] * math.sqrt(effective_radius)
         fn = stiffness * normal_overlap ** 1.5
         fn_old = stiffness * max(normal_overlap - normal_overlap_increment, 0.0) ** 1.5
     else:
@@ -294,7 +295,7 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
     # sqrt(t) growth of a after first touch costs half an order (see _step_mean_sqrt)
     # (a = sqrt(R* d) at both ends: _step_mean_sqrt times sqrt(R*), the end's root shared
     # with hertz_normal_force)
-    stick_stiffness = constants[SHEAR_MODULUS] * _mean_of_roots(
+    stick_stiffness = constants[MINDLIN_PREFACTOR] * _mean_of_roots(
         math.sqrt(effective_radius * max(normal_overlap - normal_overlap_increment, 0.0)),
         math.sqrt(effective_radius * normal_overlap))
     limit = mu * max(normal_force, 0.0)
@@ -449,7 +450,7 @@ def hmd_force(constants, effective_radius, effective_mass, normal_overlap, norma
     elif special and not eq19 and reading in (SPECIAL_TOTAL, SPECIAL_FORCE, SPECIAL_DISPLACEMENT):
         # the end condition is tested only once eq 19 has stopped holding (as the
         # reference solver's event does), so the anchor stays where the state began
-        end_stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius * normal_overlap)
+        end_stiffness = constants[MINDLIN_PREFACTOR] * math.sqrt(effective_radius * normal_overlap)
         special = _special_margin(reading, history, ftx, fty, ftz, fn, end_stiffness, mu) > 0.0
     history[SPECIAL] = 1.0 if special else 0.0
     history[FT], history[FT + 1], history[FT + 2] = ftx, fty, ftz
@@ -472,7 +473,7 @@ def hm_force(constants, effective_radius, effective_mass, normal_overlap, normal
     # order 1.5 (measured against the reference; see _step_mean_sqrt). The mean is that of
     # the contact radius a = sqrt(R* d), whose value at the end of the step
     # hertz_normal_force has computed (normal_overlap > 0: the law acts in contact only)
-    stiffness = constants[SHEAR_MODULUS] * _mean_of_roots(
+    stiffness = constants[MINDLIN_PREFACTOR] * _mean_of_roots(
         math.sqrt(effective_radius * max(normal_overlap - normal_overlap_increment, 0.0)),
         math.sqrt(effective_radius * normal_overlap))
     ftx, fty, ftz = incremental_spring(history, stiffness, tangential_increment,
@@ -495,7 +496,7 @@ def _accumulate_displacement(history, tangential_increment):
 def _secant_force(constants, effective_radius, effective_mass, normal_overlap, normal_velocity,
                   tangential_increment, history, reset):
     normal_force = hertz_normal_force(constants, effective_radius, effective_mass, normal_overlap, normal_velocity)
-    stiffness = constants[SHEAR_MODULUS] * math.sqrt(effective_radius * normal_overlap)
+    stiffness = constants[MINDLIN_PREFACTOR] * math.sqrt(effective_radius * normal_overlap)
     sx, sy, sz = _accumulate_displacement(history, tangential_increment)
     ftx, fty, ftz, sliding = coulomb_cap(stiffness * sx, stiffness * sy, stiffness * sz,
                                          constants[MU] * max(normal_force, 0.0))

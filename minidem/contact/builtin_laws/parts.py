@@ -75,9 +75,9 @@ HERTZ = ContactPart(
     kind="normal",
     description="Hertz Fn = 4/3 E* sqrt(R*) d^1.5 (eq 15), from the materials' E and nu",
     parameters=(),
-    constants=("hertz_modulus",),
+    constants=("hertz_prefactor",),
     history=(),
-    prepare=lambda pair, params, prepared: {"hertz_modulus": 4.0 / 3.0 * pair.effective_modulus},
+    prepare=lambda pair, params, prepared: {"hertz_prefactor": 4.0 / 3.0 * pair.effective_modulus},
     function=hertz_normal,
     energy=("store",),
     provides=("hertzian",),
@@ -178,7 +178,7 @@ LINEAR_HISTORY = ContactPart(
 
 def prepare_shear_and_friction(pair, params, prepared):
     """8 G* (Mindlin's kt = 8 G* a) and mu: the constants of mindlin and of marshall twisting."""
-    return {"shear_modulus": 8.0 * pair.effective_shear_modulus, "friction": params["friction"]}
+    return {"mindlin_prefactor": 8.0 * pair.effective_shear_modulus, "friction": params["friction"]}
 
 
 @numba.njit(cache=True, inline="always")
@@ -197,13 +197,13 @@ MINDLIN = ContactPart(
     kind="tangential",
     description="Mindlin no-slip, incremental Ft += 8 G* a dd capped at mu Fn (eq 39); needs a Hertzian normal",
     parameters=(FRICTION,),
-    constants=("shear_modulus", "friction"),
+    constants=("mindlin_prefactor", "friction"),
     history=_FORCE_SLOT,
     prepare=prepare_shear_and_friction,
     function=mindlin_tangential,
     energy=("store", "dissipate"),
     requires=("hertzian",),
-    stiffness=lambda pair, c, radius, mass, overlap: c["shear_modulus"] * math.sqrt(radius * overlap),
+    stiffness=lambda pair, c, radius, mass, overlap: c["mindlin_prefactor"] * math.sqrt(radius * overlap),
     reference=f"{PAPER} section 3.3, eq 39; Mindlin (1949)",
 )
 

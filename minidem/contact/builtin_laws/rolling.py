@@ -202,7 +202,7 @@ MARSHALL = ContactPart(
     kind="twisting",
     description="twisting spring k_tw = 0.5 kt a^2 (kt = 8 G* a) capped at 2/3 mu Fn a (Marshall 2009)",
     parameters=(FRICTION,),
-    constants=("shear_modulus", "friction"),
+    constants=("mindlin_prefactor", "friction"),
     history=(HistorySlot("twisting_moment", "the spring's couple about the normal on the first body (N m)",
                          exchange=1),),
     prepare=prepare_shear_and_friction,
