@@ -97,7 +97,9 @@ def command_run(args) -> int:
         return sweep.command(args, data)
     for option, given in (("--scheduler", args.scheduler), ("--restart", args.restart), ("--workers", args.workers)):
         if given is not None and given is not False:
-            warnings.warn(f"{option} ignored: {args.file} has no [sweep] table (a single run)")
+            warnings.warn(f"{option} ignored: " + (f"--case {args.case} runs one case alone (a single run)"
+                                                   if getattr(args, "case", None) is not None
+                                                   else f"{args.file} has no [sweep] table (a single run)"))
     # on a fresh install the scene's kernel compiles in a helper while the check of
     # overlapping spheres compiles the neighbour search here
     scene = scenario.load_scene(args.file, args.set, args.out, while_checking=functools.partial(
