@@ -64,11 +64,15 @@ class LoopThreads:
     descheduled at a join stalls the other, and a run on two threads was up to several
     times slower than on one (docs/multi-particle.md, "Threads"). So the run times its
     chunks (seconds per step) and now and then runs one chunk on the other count, keeping
-    the faster. A probe that loses doubles the wait before the next one, up to
-    ``PROBE_MAX`` chunks (see CHECK_PARTICLE_STEPS), so losing probes cost a few per cent.
+    the faster. The first probe follows the first chunk: on a loaded machine two threads
+    can be thirty times slower than one (6,000 particles: 16 ms a step against 0.5 ms),
+    and waiting four chunks to find out cost such a run most of its time. After a switch
+    the other count is tried again ``PROBE_AGAIN`` chunks later; a probe that loses
+    doubles the wait before the next one, up to ``PROBE_MAX`` chunks (see
+    CHECK_PARTICLE_STEPS), so losing probes cost a few per cent.
     """
 
-    PROBE_FIRST, PROBE_MAX = 4, 64
+    PROBE_FIRST, PROBE_AGAIN, PROBE_MAX = 1, 4, 64
     # chunks shorter than this (cut short by a list rebuild) are too noisy to compare
     MIN_STEPS = 10
     # a probe runs this fraction of a chunk (at least 2 MIN_STEPS): a probe that loses
@@ -100,9 +104,9 @@ class LoopThreads:
             return
         self.since_probe = 0  # a probe of the other count: keep the faster
         if seconds / steps < self.seconds_per_step.get(self.current, math.inf):
-            self.current, self.wait = threads, self.PROBE_FIRST
+            self.current, self.wait = threads, self.PROBE_AGAIN
         else:
-            self.wait = min(2 * self.wait, self.PROBE_MAX)
+            self.wait = min(max(2 * self.wait, self.PROBE_AGAIN), self.PROBE_MAX)
 
     def most_used(self) -> int:
         return max(self.steps, key=self.steps.get) if self.steps else self.current
