@@ -187,6 +187,14 @@ def test_a_truncated_or_foreign_stl_is_named_as_such(capsys, tmp_path):
         path = mesh_scenario(tmp_path, data)
         err = refused(capsys, "run", path, "--out", tmp_path / "out")
         assert expected in err and "UnicodeDecodeError" not in err and "utf-8" not in err, (name, err)
+    # random bytes named .ply or .obj (read by meshio's text readers: before, "'utf-8' codec
+    # can't decode byte 0xb7", a review, 2026-11-28)
+    for suffix in ("ply", "obj"):
+        path = mesh_scenario(tmp_path, np.random.default_rng(18).bytes(3000))
+        (tmp_path / "wall.stl").rename(tmp_path / f"wall.{suffix}")
+        path.write_text(path.read_text().replace('file = "wall.stl"', f'file = "wall.{suffix}"'))
+        err = refused(capsys, "run", path, "--out", tmp_path / "out")
+        assert f"not a {suffix.upper()} file meshio can read" in err and "utf-8" not in err, (suffix, err)
 
 
 # the materials, law and floor of the malformed-input battery's two-sphere scene, filled from a CSV
