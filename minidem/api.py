@@ -197,8 +197,9 @@ class Scenario:
         from minidem.scene import scenario
 
         if "sweep" in self.data:
-            raise ScenarioError(f"{self.source}: has a [sweep] table: run it with minidem.sweep(), or drop it "
-                                "(scenario.data.pop('sweep')) to run the base scenario once")
+            raise ScenarioError(f"{self.source}: has a [sweep] table: run it with minidem.sweep(), one of its "
+                                "cases with minidem.run(..., case=N), or drop it (scenario.data.pop('sweep')) to "
+                                "run the base scenario once")
         return scenario.build_scene(copy.deepcopy(self.data), self.source, out)
 
     def run(self, out: str | Path | None = None, progress: bool = False) -> "Result":
@@ -221,6 +222,17 @@ class Scenario:
 
     def __repr__(self) -> str:
         return f"<Scenario {self.source}: {', '.join(self.data) or 'empty'}>"
+
+
+def _one_case(given: Scenario, case: int) -> Scenario:
+    """Case ``case`` of a scenario's [sweep], as a scenario without it."""
+    from minidem.studies import sweep as sweep_module
+
+    if "sweep" not in given.data:
+        raise ScenarioError(f"{given.source}: case={case!r}: the scenario has no [sweep] table, so no cases: run "
+                            "it without case=")
+    plan = sweep_module.plan(copy.deepcopy(given.data), given.source)
+    return Scenario(plan.base, given.source).set(sweep_module.case_values(plan, case, f"case={case!r}"))
 
 
 def load(path: str | Path, overrides=None) -> Scenario:
@@ -305,12 +317,15 @@ class Result:
                 f"{self.summary['steps']} steps, t = {self.time:.6g} s>")
 
 
-def run(scenario, overrides=None, out: str | Path | None = None, progress: bool = False) -> Result:
+def run(scenario, overrides=None, out: str | Path | None = None, progress: bool = False,
+        case: int | None = None) -> Result:
     """Run a scenario (a :class:`Scenario`, a file path or a dict) as ``minidem run`` does.
 
     ``overrides``: as :func:`load`. ``out``: an output directory to write what ``minidem
     run`` writes there (summary.json, final_state.npz, trace.csv, the VTK series); None
-    (default) writes no file. ``progress``: a tqdm bar for long runs.
+    (default) writes no file. ``progress``: a tqdm bar for long runs. ``case``: of a
+    scenario with a ``[sweep]``, run that case alone (as ``minidem run --case``; its
+    number as in sweep.csv), after ``overrides``.
     Raises :class:`ScenarioError` (bad input), :class:`LawError` (a broken law),
     :class:`RunFailure` (a blow-up), all :class:`MinidemError`.
     """
@@ -321,6 +336,8 @@ def run(scenario, overrides=None, out: str | Path | None = None, progress: bool 
     from minidem.scene import scenario as scenario_module
 
     given = _scenario(scenario, overrides)
+    if case is not None:
+        given = _one_case(given, case)
     scene = given.scene(out)
     directory, policy, frames = None, None, None
     if out is not None:

@@ -230,6 +230,14 @@ def test_one_case_of_a_sweep_runs_alone_with_its_own_files(reference, tmp_path, 
     assert not (out / "sweep.csv").exists()
     assert cli.main(["run", str(OBLIQUE), "--out", str(out), "--case", "0", "--quiet"]) == 2
     assert "has no [sweep] table" in capsys.readouterr().err
+    # the same from Python: minidem.run(..., case=N)
+    import minidem
+
+    assert minidem.run(path, case=3).summary["y2"] == row["y2"]
+    with pytest.raises(minidem.ScenarioError, match=r"case=6: the sweep has 6 case\(s\), 0 to 5"):
+        minidem.run(path, case=6)
+    with pytest.raises(minidem.ScenarioError, match=r"one of its cases with minidem.run\(\.\.\., case=N\)"):
+        minidem.run(path)
 
 
 def test_cases_given_to_sweep_replace_the_settings_that_name_the_files_cases(tmp_path):

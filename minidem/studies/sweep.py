@@ -675,16 +675,22 @@ def case_alone(args, data: dict):
     after the other --set values, its files in OUT/case_NNN)."""
     sweep = plan(scenario.apply_overrides(data, args.set), str(args.file))
     _refuse_swept_overrides(args, sweep)
-    if not 0 <= args.case < len(sweep.cases):
-        raise ScenarioError(f"{sweep.source}: --case {args.case}: the sweep has {len(sweep.cases)} case(s), "
-                            f"0 to {len(sweep.cases) - 1} (sweep.csv's case column)")
+    values = case_values(sweep, args.case, f"--case {args.case}")
     one = copy.copy(args)
-    one.set = [*(args.set or []), *sweep.overrides(args.case)]
+    one.set = [*(args.set or []), *values]
     one.out = str(_directory(args, sweep) / f"case_{args.case:03d}")
     if not args.quiet:
-        print(f"minidem: {sweep.source}: case {args.case} of {len(sweep.cases)} alone: "
-              + ", ".join(sweep.overrides(args.case)))
+        print(f"minidem: {sweep.source}: case {args.case} of {len(sweep.cases)} alone: " + ", ".join(values))
     return one
+
+
+def case_values(sweep: SweepPlan, case: int, named: str) -> list[str]:
+    """Case ``case``'s values as --set texts; ``named``: how the caller was given it
+    (``--case 3``, ``case=3``), for the error of a case the sweep does not have."""
+    if isinstance(case, bool) or not isinstance(case, int) or not 0 <= case < len(sweep.cases):
+        raise ScenarioError(f"{sweep.source}: {named}: the sweep has {len(sweep.cases)} case(s), 0 to "
+                            f"{len(sweep.cases) - 1} (sweep.csv's case column)")
+    return sweep.overrides(case)
 
 
 def command(args, data: dict) -> int:
