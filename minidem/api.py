@@ -231,7 +231,7 @@ def _one_case(given: Scenario, case: int) -> Scenario:
     if "sweep" not in given.data:
         raise ScenarioError(f"{given.source}: case={case!r}: the scenario has no [sweep] table, so no cases: run "
                             "it without case=")
-    plan = sweep_module.plan(copy.deepcopy(given.data), given.source)
+    plan = sweep_module.plan(copy.deepcopy(given.data), given.source, check_cases=False)
     return Scenario(plan.base, given.source).set(sweep_module.case_values(plan, case, f"case={case!r}"))
 
 
@@ -325,7 +325,8 @@ def run(scenario, overrides=None, out: str | Path | None = None, progress: bool 
     run`` writes there (summary.json, final_state.npz, trace.csv, the VTK series); None
     (default) writes no file. ``progress``: a tqdm bar for long runs. ``case``: of a
     scenario with a ``[sweep]``, run that case alone (as ``minidem run --case``; its
-    number as in sweep.csv), after ``overrides``.
+    number as in sweep.csv), after ``overrides``; ``out`` is then its directory itself
+    (``minidem run --case`` makes OUT/case_NNN).
     Raises :class:`ScenarioError` (bad input), :class:`LawError` (a broken law),
     :class:`RunFailure` (a blow-up), all :class:`MinidemError`.
     """
@@ -337,6 +338,12 @@ def run(scenario, overrides=None, out: str | Path | None = None, progress: bool 
 
     given = _scenario(scenario, overrides)
     if case is not None:
+        if "sweep" in given.data:  # an override of a swept key: every case sets it again
+            from minidem.studies import sweep as sweep_module
+
+            sweep_module.refuse_swept_overrides(
+                sweep_module.plan(copy.deepcopy(given.data), given.source, check_cases=False),
+                _override_texts(overrides), "overrides {}", "case=N")
         given = _one_case(given, case)
     scene = given.scene(out)
     directory, policy, frames = None, None, None
@@ -453,6 +460,7 @@ def sweep(scenario, cases: Mapping[str, Sequence] | None = None, overrides=None,
     if workers is not None and workers < 0:
         raise ScenarioError(f"workers={workers}: must be >= 0 (0: one per CPU)")
     plan = sweep_module.plan(data, given.source)
+    sweep_module.refuse_swept_overrides(plan, _override_texts(overrides), "overrides {}", "minidem.run(..., case=N)")
     if out is not None:
         from minidem.scene import scenario as scenario_module
         from minidem.studies import figures

@@ -194,7 +194,8 @@ def test_a_truncated_or_foreign_stl_is_named_as_such(capsys, tmp_path):
         (tmp_path / "wall.stl").rename(tmp_path / f"wall.{suffix}")
         path.write_text(path.read_text().replace('file = "wall.stl"', f'file = "wall.{suffix}"'))
         err = refused(capsys, "run", path, "--out", tmp_path / "out")
-        assert f"not a {suffix.upper()} file meshio can read" in err and "utf-8" not in err, (suffix, err)
+        kind = {"ply": "a PLY", "obj": "an OBJ"}[suffix]
+        assert f"not {kind} file meshio can read" in err and "utf-8" not in err, (suffix, err)
 
 
 # the materials, law and floor of the malformed-input battery's two-sphere scene, filled from a CSV

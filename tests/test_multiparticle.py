@@ -831,7 +831,10 @@ def test_loop_threads_keep_the_faster_count():
         threads = chooser.choose()
         used.append(threads)
         chooser.record(threads, 100, speed[threads])
-    assert used[:LoopThreads.PROBE_FIRST + 1] == [2] * LoopThreads.PROBE_FIRST + [1]
+    # the first probe right after the first chunk: on a loaded machine two threads can be
+    # thirty times slower than one, and four chunks before it cost a review's run 3.9 of
+    # its 14.3 s (docs/multi-particle.md, "Threads")
+    assert used[:2] == [2, 1] and used[2:6] == [1] * 4
     probes = [k for k in range(10, 200) if used[k] == 2]
     assert 2 <= len(probes) <= 6 and probes[-1] - probes[-2] >= 32  # backing off
     assert chooser.most_used() == 1 and chooser.steps == {1: 100 * used.count(1), 2: 100 * used.count(2)}

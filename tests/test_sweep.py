@@ -234,6 +234,16 @@ def test_one_case_of_a_sweep_runs_alone_with_its_own_files(reference, tmp_path, 
     import minidem
 
     assert minidem.run(path, case=3).summary["y2"] == row["y2"]
+    assert minidem.run(path, case=np.int64(3)).summary["y2"] == row["y2"]  # a number read from sweep.csv
+    # overrides of a swept key, or of the table holding one, are refused from Python too
+    with pytest.raises(minidem.ScenarioError, match=r"overrides impact.angle_deg=45.0: 'impact.angle_deg' is varied"):
+        minidem.run(path, {"impact.angle_deg": 45.0}, case=0)
+    with pytest.raises(minidem.ScenarioError, match=r"'impact.angle_deg' is varied by the \[sweep\]"):
+        minidem.sweep(path, overrides=['impact={material="glass", radius=0.025, speed=5.0}'], workers=1)
+    capsys.readouterr()
+    assert cli.main(["run", str(path), "--case", "1", "--quiet", "--set",
+                     'impact={material="glass", radius=0.025, speed=5.0}']) == 2
+    assert "'impact.angle_deg' is varied by the [sweep]" in capsys.readouterr().err
     with pytest.raises(minidem.ScenarioError, match=r"case=6: the sweep has 6 case\(s\), 0 to 5"):
         minidem.run(path, case=6)
     with pytest.raises(minidem.ScenarioError, match=r"one of its cases with minidem.run\(\.\.\., case=N\)"):

@@ -619,3 +619,33 @@ def test_an_analytic_flight_run_has_the_flight_frames(tmp_path):
         assert z == pytest.approx(0.11 - 0.5 * 9.81 * t * t, abs=1e-15)  # free fall
         velocity = vtk_to_numpy(grid.GetPointData().GetArray("velocity"))[0]
         assert velocity == pytest.approx([0.0, 0.0, -9.81 * t], abs=1e-15)
+
+
+def test_the_frame_due_at_the_end_is_the_final_state_not_one_step_before_it(tmp_path):
+    """A frame's step is the first at or after its time, as the run's last step is the
+    first at or after run.end_time: with end_time / dt = 1000.3 the frame due at end_time
+    is the final state (step 1001). Rounded to the nearest step it was step 1000, and
+    the final state made a second frame one step later (a review: frames at 0.04999999
+    and 0.05000022 s)."""
+    from minidem.scene import scenario
+    from minidem.engine import simulation
+    from minidem.results.vtk import SimulationFrames
+
+    dt = 0.05 / 1000.3
+    scene = scenario.build_scene({
+        "materials": {"soft": {"youngs_modulus": 1e6, "poisson_ratio": 0.3, "density": 2500.0}},
+        "contact": {"law": "hm", "friction": 0.3, "restitution": 0.5},
+        "walls": [{"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0], "material": "soft"}],
+        "particles": [{"position": [0.0, 0.0, 0.5], "velocity": [1.0, 0.0, 0.0], "radius": 0.01,
+                       "material": "soft"}],
+        "run": {"stop": "time", "end_time": 0.05, "dt": dt, "integrator": "velocity_verlet"},
+        "output": {"interval": 0.01, "directory": str(tmp_path)},
+    }, "drift.toml")
+    sim = simulation.Simulation(scene)
+    frames = SimulationFrames(sim, tmp_path)
+    sim.run(on_frame=frames)
+    frames.close()
+    times = [float(t) for t, _ in parse_pvd(tmp_path / "particles.pvd")]
+    assert len(times) == 6 and times[-1] == pytest.approx(1001 * dt, rel=1e-12), times
+    assert np.diff(times) == pytest.approx(np.full(5, 0.01), abs=dt), times
+

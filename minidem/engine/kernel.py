@@ -184,7 +184,9 @@ def note_transitions(stats, time, dt, overlap, previous):
         # clamped to the step: rounding may otherwise give a time just below zero, which
         # reads as 'no contact yet' and the run would never stop at separation
         stats[FIRST_CONTACT_TIME] = time if dt == 0.0 else max(time - dt * overlap / (overlap - previous), time - dt)
-    elif overlap <= 0.0 and previous > 0.0:
+    elif overlap <= 0.0 and previous > 0.0 and dt > 0.0:
+        # (not at the first call: a touch within round-off, its overlap clamped to 0
+        # there, is not a separation, whatever the list build's overlap said)
         stats[LAST_SEPARATION_TIME] = time - dt * (-overlap) / (previous - overlap)
 
 

@@ -117,9 +117,10 @@ def read_mesh(path: str | Path, scale: float = 1.0, offset=(0.0, 0.0, 0.0)) -> t
             warnings.simplefilter("ignore", RuntimeWarning)
             mesh = meshio.read(str(path))
     except UnicodeDecodeError as exc:  # a text format's reader given bytes that are not text
-        raise ValueError(f"cannot read mesh '{path}': not a {Path(path).suffix.lstrip('.').upper() or 'mesh'} "
-                         f"file meshio can read (byte {exc.start} is not text where the format's header "
-                         "is)") from None
+        kind = Path(path).suffix.lstrip(".").upper() or "mesh"
+        raise ValueError(f"cannot read mesh '{path}': not {'an' if kind[0] in 'AEIOU' else 'a'} {kind} file "
+                         f"meshio can read (it reads text where the file has bytes that are not: "
+                         f"{exc.object[exc.start:exc.start + 1]!r} at byte {exc.start})") from None
     except Exception as exc:  # noqa: BLE001 - meshio raises many types for bad files
         raise ValueError(f"cannot read mesh '{path}': {exc}") from None
     faces = []

@@ -34,6 +34,7 @@ import hashlib
 import itertools
 import json
 import math
+import operator
 import os
 import time as wallclock
 import warnings
@@ -126,8 +127,10 @@ def has_sweep(data: dict) -> bool:
     return "sweep" in data
 
 
-def plan(data: dict, source: str) -> SweepPlan:
-    """Validate ``[sweep]`` (keys from scenario.SCHEMA) and every case's scenario."""
+def plan(data: dict, source: str, check_cases: bool = True) -> SweepPlan:
+    """Validate ``[sweep]`` (keys from scenario.SCHEMA) and every case's scenario
+    (``check_cases`` False: not the cases, for one case run alone, which is checked as
+    any single run is)."""
     errors = scenario._Errors(source)
     keys_declared = scenario.SCHEMA["sweep"][1]
     values = scenario._check_table(data["sweep"], keys_declared, "sweep", errors)
@@ -189,7 +192,7 @@ def plan(data: dict, source: str) -> SweepPlan:
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        for index in range(len(cases)):
+        for index in range(len(cases) if check_cases else 0):
             try:
                 scene = scenario.build_scene(scenario.apply_overrides(base, sweep.overrides(index)), source)
                 # what the values imply (constants, time step, steps), without compiling
@@ -659,22 +662,26 @@ def _directory(args, sweep: SweepPlan) -> Path:
         sweep.base.get("output", {}).get("directory") or Path("out") / Path(args.file).stem)
 
 
-def _refuse_swept_overrides(args, sweep: SweepPlan) -> None:
-    """A --set of a key the sweep varies would be set again by every case: refused."""
-    for text in args.set or []:
+def refuse_swept_overrides(sweep: SweepPlan, texts, named: str = "--set {}", one_case: str = "--case N") -> None:
+    """An override of a key the sweep varies (or of a value inside a swept table, or of a
+    table holding a swept key) would be set again by every case: refused. ``named``
+    formats an override as the caller was given it, ``one_case`` says how to run one case."""
+    for text in texts or []:
         key = ".".join(scenario.parse_override(text)[0])
-        if key in sweep.keys:
+        swept = next((k for k in sweep.keys if key == k or key.startswith(k + ".") or k.startswith(key + ".")),
+                     None)
+        if swept is not None:
             raise ScenarioError(
-                f"{sweep.source}: --set {text}: '{key}' is varied by the [sweep] (sweep.cases), which sets it in "
-                f"every case. To run one case alone: --case N (N from sweep.csv's case column, 0 to "
-                f"{len(sweep.cases) - 1}); to sweep other values: --set 'sweep.cases={{...}}' or edit sweep.cases")
+                f"{sweep.source}: {named.format(text)}: '{swept}' is varied by the [sweep] (sweep.cases), which "
+                f"sets it in every case. To run one case alone: {one_case} (N from sweep.csv's case column, 0 to "
+                f"{len(sweep.cases) - 1}); to sweep other values: change sweep.cases")
 
 
 def case_alone(args, data: dict):
     """``minidem run FILE --case N``: the arguments of a single run of case N (its values
     after the other --set values, its files in OUT/case_NNN)."""
-    sweep = plan(scenario.apply_overrides(data, args.set), str(args.file))
-    _refuse_swept_overrides(args, sweep)
+    sweep = plan(scenario.apply_overrides(data, args.set), str(args.file), check_cases=False)
+    refuse_swept_overrides(sweep, args.set)
     values = case_values(sweep, args.case, f"--case {args.case}")
     one = copy.copy(args)
     one.set = [*(args.set or []), *values]
@@ -687,10 +694,15 @@ def case_alone(args, data: dict):
 def case_values(sweep: SweepPlan, case: int, named: str) -> list[str]:
     """Case ``case``'s values as --set texts; ``named``: how the caller was given it
     (``--case 3``, ``case=3``), for the error of a case the sweep does not have."""
-    if isinstance(case, bool) or not isinstance(case, int) or not 0 <= case < len(sweep.cases):
+    try:
+        number = operator.index(case)  # an int, or numpy's (sweep.csv's case column read back)
+    except TypeError:
+        raise ScenarioError(f"{sweep.source}: {named}: expected a case number (an integer), got "
+                            f"{type(case).__name__}") from None
+    if isinstance(case, bool) or not 0 <= number < len(sweep.cases):
         raise ScenarioError(f"{sweep.source}: {named}: the sweep has {len(sweep.cases)} case(s), 0 to "
                             f"{len(sweep.cases) - 1} (sweep.csv's case column)")
-    return sweep.overrides(case)
+    return sweep.overrides(number)
 
 
 def command(args, data: dict) -> int:
@@ -701,7 +713,7 @@ def command(args, data: dict) -> int:
 
     data = scenario.apply_overrides(data, args.set)
     sweep = plan(data, str(args.file))
-    _refuse_swept_overrides(args, sweep)
+    refuse_swept_overrides(sweep, args.set)
     directory = _directory(args, sweep)
     workers = getattr(args, "workers", None)
     if workers is not None and workers < 0:
