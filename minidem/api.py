@@ -434,8 +434,9 @@ def sweep(scenario, cases: Mapping[str, Sequence] | None = None, overrides=None,
     ``scenario``: a :class:`Scenario`, a file path or a dict; with a ``[sweep]`` table, or
     a base scenario and ``cases`` (dotted key -> list of values, as ``sweep.cases``; given,
     it replaces the scenario's, and with them ``sweep.series_labels``, ``sweep.together``
-    and an ``sweep.abscissa`` it does not vary; the other [sweep] keys stay). ``overrides``: applied to the base scenario first, as
-    ``--set``. Every case is validated before any runs (:class:`ScenarioError` names the
+    and a ``sweep.abscissa`` it does not vary; the other [sweep] keys stay).
+    ``overrides``: applied to the base scenario first, as ``--set`` (not to a key the
+    sweep varies: refused, every case would set it again). Every case is validated before any runs (:class:`ScenarioError` names the
     case and the key). ``workers``: local processes (default ``sweep.workers``; 0: one per
     CPU; 1: in this process). ``out``: write what ``minidem run`` writes for a sweep
     (sweep.csv, sweep.json, the journal, figures) there, resuming a sweep it holds;
