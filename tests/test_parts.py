@@ -593,6 +593,20 @@ def test_rolling_and_twisting_dashpots_are_second_order_in_dt(tmp_path, kind):
     assert all(3.6 < ratio < 4.4 for ratio in ratios), (errors, ratios)
 
 
+def test_a_law_of_couples_without_a_tangential_part_has_a_time_step(tmp_path):
+    # hertz + epsd: a rolling couple and no tangential force. The stability limit took a
+    # tangential mode of stiffness 0 (omega = 0) and divided by it, and the run was
+    # refused as "out of the range of a float64 computation ... youngs_modulus = 7e+10"
+    # (a plugin author's review, 2026-11-28). A mode without stiffness sets no limit: the
+    # normal mode's does, and the time step is the contact time's (construction only).
+    path = tmp_path / "rolling_only.toml"
+    path.write_text(OBLIQUE.read_text().replace("friction = 0.1", ""))
+    scene = scenario.load_scene(path, ['contact.law="hertz+epsd"', "contact.rolling_friction=0.1",
+                                       "impact.spin=100.0"])
+    sim = simulation.Simulation(scene, compile=False)
+    assert sim.spin and "normal mode" in sim.stability_why and "contact time" in sim.dt_reason
+
+
 def test_couples_conserve_angular_momentum_between_two_spheres(tmp_path):
     # A glancing collision of two spinning spheres of different size with rolling (EPSD)
     # and twisting (Marshall) resistance: the couple on one is minus the couple on the

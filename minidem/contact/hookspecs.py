@@ -35,7 +35,13 @@ def minidem_register_laws(registry):
       ``force(constants, effective_radius, effective_mass, normal_overlap,
       normal_overlap_increment, normal_velocity, tangential_increment,
       tangential_velocity, history) -> (fn, ftx, fty, ftz)``; a scenario names it with
-      ``law = "name"``.
+      ``law = "name"``. A law declared with ``couples=True`` (rolling or twisting
+      resistance of its own) takes three more arguments, ``rotation_increment`` (the
+      first body's rotation relative to the second over the step, rad, a 3-tuple: what a
+      spring integrates), ``relative_spin`` (w_i - w_j at the step's end, rad/s: what a
+      dashpot reads) and ``normal`` (n, from the second body to the first), and returns
+      ``(fn, ftx, fty, ftz, mx, my, mz)``, the last three the couple on the first body
+      (the second gets its opposite; at a wall the sphere is the first body).
     * :class:`minidem.contact.ContactPart`: one part of a model, of one kind
       (``minidem.contact.KINDS``: normal, damping, tangential, rolling, twisting), whose
       function has that kind's signature (``minidem.contact.PART_ARGUMENTS``). A scenario

@@ -512,6 +512,13 @@ def _compiled_function_problem(function, field: str, arguments: tuple[str, ...])
         return (f"'{field}' ({func.__qualname__}) takes ({', '.join(_OLD_COUPLE_ARGUMENTS)}) last, the couple "
                 f"arguments of an earlier minidem; the engine now passes ({', '.join(COUPLE_ARGUMENTS)}): the "
                 "step's relative rotation for springs (was relative_spin * dt) and the relative spin for dashpots")
+    # any names will do, but one of the engine's at another place is a swap (two vectors
+    # of the same type, an increment and a velocity, compile either way and run wrong)
+    for at, (parameter, expected) in enumerate(zip(given, arguments), start=1):
+        if parameter.name != expected and parameter.name in arguments:
+            return (f"'{field}' ({func.__qualname__}) takes '{parameter.name}' as argument {at}, where the engine "
+                    f"passes '{expected}' ('{parameter.name}' is argument {arguments.index(parameter.name) + 1}); "
+                    f"the engine calls it with ({', '.join(arguments)})")
     return None
 
 

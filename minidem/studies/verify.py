@@ -146,9 +146,12 @@ class Battery:
                                             "mu Fn on a normal force that is never tensile")
         if skipped:
             return skipped
-        resisting = [f"{p.kind} part '{p.name}'" for p in self.law.parts if p.kind in ("rolling", "twisting")]
+        resisting = [f"the combination has a {p.kind} part '{p.name}'" for p in self.law.parts
+                     if p.kind in ("rolling", "twisting")]
+        if not resisting and self.law.couples:  # a whole law with its own couple (couples=True)
+            resisting = ["the law returns a couple (couples=True)"]
         if resisting:  # eqs 6-8 have only the tangential force turn the sphere
-            return [Check("rigid-body sliding limit", None, f"skipped: the combination has a {resisting[0]}",
+            return [Check("rigid-body sliding limit", None, f"skipped: {resisting[0]}",
                           "not applicable: paper eqs 6-8 assume no rolling or twisting resistance",
                           "paper eqs 6-8")]
         if not self.has_parameter("friction"):
