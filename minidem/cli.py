@@ -266,7 +266,7 @@ def command_laws(args) -> int:
             "laws": [{
                 "name": e.law.name, "plugin": e.plugin, "package": e.distribution, "version": e.version,
                 "description": e.law.description, "aliases": list(e.law.aliases),
-                "history_slots": e.law.history_size,
+                "history_slots": e.law.history_size, "couples": bool(e.law.couples),
                 "parameters": [{"name": p.name, "default": p.default, "unit": p.unit, "bounds": p.bounds_text(),
                                 "required": p.required, "description": p.description} for p in e.law.parameters],
             } for e in registry.entries()],
@@ -301,7 +301,8 @@ def command_laws(args) -> int:
         print(f"    {e.law.description}")
         for q in e.law.parameters:
             print(parameter_line(q, "    "))
-        print(f"    history: {e.law.history_size} slot(s) per contact")
+        print(f"    history: {e.law.history_size} slot(s) per contact"
+              + ("; returns a couple (couples=True: rolling or twisting resistance)" if e.law.couples else ""))
     for preset in registry.presets():
         print(f"{preset.name}  [preset: {' + '.join(preset.parts.values())}]")
         print(f"    {preset.description}")
