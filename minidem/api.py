@@ -224,14 +224,16 @@ class Scenario:
         return f"<Scenario {self.source}: {', '.join(self.data) or 'empty'}>"
 
 
-def _one_case(given: Scenario, case: int) -> Scenario:
-    """Case ``case`` of a scenario's [sweep], as a scenario without it."""
+def _one_case(given: Scenario, case: int, overrides) -> Scenario:
+    """Case ``case`` of a scenario's [sweep] (``overrides`` applied to it), as a scenario
+    without it; an override of a swept key is refused: every case sets it again."""
     from minidem.studies import sweep as sweep_module
 
     if "sweep" not in given.data:
         raise ScenarioError(f"{given.source}: case={case!r}: the scenario has no [sweep] table, so no cases: run "
                             "it without case=")
     plan = sweep_module.plan(copy.deepcopy(given.data), given.source, check_cases=False)
+    sweep_module.refuse_swept_overrides(plan, _override_texts(overrides), "overrides {}", "case=N")
     return Scenario(plan.base, given.source).set(sweep_module.case_values(plan, case, f"case={case!r}"))
 
 
@@ -338,13 +340,7 @@ def run(scenario, overrides=None, out: str | Path | None = None, progress: bool 
 
     given = _scenario(scenario, overrides)
     if case is not None:
-        if "sweep" in given.data:  # an override of a swept key: every case sets it again
-            from minidem.studies import sweep as sweep_module
-
-            sweep_module.refuse_swept_overrides(
-                sweep_module.plan(copy.deepcopy(given.data), given.source, check_cases=False),
-                _override_texts(overrides), "overrides {}", "case=N")
-        given = _one_case(given, case)
+        given = _one_case(given, case, overrides)
     scene = given.scene(out)
     directory, policy, frames = None, None, None
     if out is not None:
