@@ -227,8 +227,9 @@ def touches_at_start(dt, overlap, lives_above, size, dv, normal):
     first call, dt = 0: the paper's start, analytic flight's touch, Chung and Ooi's
     pairs), within the round-off of placing it there (_SAME_POINT of ``size``, its
     radius or the pair's reach, either side: a wall through z = 0.1 or with the normal
-    (0, 1, 1) leaves the sphere placed on it 1e-17 m in or out), and moving into it (``dv``, its velocity relative to
-    the partner's, against ``normal``, from the partner to it): in contact from that
+    (0, 1, 1) leaves the sphere placed on it 1e-17 m in or out), and moving into it
+    (``dv``, its velocity relative to the partner's, against ``normal``, from the
+    partner to it): in contact from that
     instant, with the force of the touch itself, as in the reference solution. A linear
     dashpot's c v at zero overlap is the force's jump there, and a first step without it
     missed half a step's impulse of it, a first-order error (e of LS at e = 0.5: 1.0e-4

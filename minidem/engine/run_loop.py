@@ -66,7 +66,7 @@ class LoopThreads:
     chunks (seconds per step) and now and then runs one chunk on the other count, keeping
     the faster. The first probe follows the first chunk: on a loaded machine two threads
     can be thirty times slower than one (6,000 particles: 16 ms a step against 0.5 ms),
-    and waiting four chunks to find out cost such a run most of its time. After a switch
+    and waiting four chunks to find out cost such a run a quarter of its time. After a switch
     the other count is tried again ``PROBE_AGAIN`` chunks later; a probe that loses
     doubles the wait before the next one, up to ``PROBE_MAX`` chunks (see
     CHECK_PARTICLE_STEPS), so losing probes cost a few per cent.
