@@ -105,11 +105,9 @@ def _alone_problem(law: declarations.ContactLaw) -> str | None:
         why = _compiled_alone(part.function, signature, count, "function", shapes[part.kind])
         if why:
             return f"{part.kind} part '{part.name}': {why}"
-    if not law.parts and law.couples:
-        return _compiled_alone(law.force, _COUPLE_FORCE_SIGNATURE, 7, "force function",
-                               "fn, ftx, fty, ftz, mx, my, mz: a law with couples=True")
     if not law.parts:
-        return _compiled_alone(law.force, _FORCE_SIGNATURE, 4, "force function", "fn, ftx, fty, ftz")
+        shape = "fn, ftx, fty, ftz" + (", mx, my, mz: a law with couples=True" if law.couples else "")
+        return _compiled_alone(law.force, force_signature(law), 7 if law.couples else 4, "force function", shape)
     return None
 
 

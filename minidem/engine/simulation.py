@@ -497,11 +497,11 @@ class Simulation:
             # name the overlap only when the stiffness depends on it (not for a linear spring)
             depends = laws.law_stiffness(self.law, pair, named, r, m, 2.0 * overlap)[:2] != (normal, tangential)
             modes = [("normal", math.sqrt(normal / m), zeta)]
-            if self.spin and tangential > 0.0:  # none without a tangential force (a couple-only law)
+            if self.spin:
                 modes.append(("tangential", math.sqrt(3.5 * tangential / m), 0.0))
             for mode, omega, damping in modes:
                 if omega == 0.0:
-                    continue  # a mode without stiffness sets no limit
+                    continue  # a mode without stiffness sets no limit (a couple-only law's tangential)
                 acting = 2.0 * damping if predicted else damping
                 limit = 2.0 / omega * (math.sqrt(1.0 + acting**2) - acting)
                 if limit < best:
