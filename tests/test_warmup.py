@@ -1,6 +1,7 @@
 """The helper process of a first run (minidem.engine.warmup) compiles the engine's
 shared functions for exactly the argument types the engine passes them: after it, the
-engine's own calls (neighbour-list build, the guard, the kinetic energy) load them from
+engine's own calls (neighbour-list build, the guard, the kinetic energy, the kernel's
+block sum of energy samples) load them from
 numba's cache instead of compiling them again."""
 
 import json
@@ -11,7 +12,8 @@ import sys
 
 _ENGINE_CALLS = """
 import json
-from minidem.engine import blowup, integrate, simulation
+import numpy as np
+from minidem.engine import blowup, integrate, kernel, simulation
 from minidem.engine.state import State
 from minidem.geometry import neighbours
 from minidem.scene import scenario
@@ -21,10 +23,13 @@ state = State(sim)
 sim.rebuild(state)
 blowup.Guard(sim).check(state, 0.0, 0.0)
 state.kinetic_energy(scene.inertia)
+# the kernel's energy sample calls the block sum so (its particle_energy, run_loop.py)
+kernel.total_energy(np.zeros(scene.n_particles), np.zeros(1))
 print(json.dumps({name: [sum(f.stats.cache_hits.values()), sum(f.stats.cache_misses.values())]
                   for name, f in (("build_pairs", neighbours.build_pairs), ("carry_history", neighbours.carry_history),
                                   ("reverse_index", neighbours.fill_reverse_index), ("survey", blowup.survey),
-                                  ("kinetic_energy", integrate.kinetic_energy))}))
+                                  ("kinetic_energy", integrate.kinetic_energy),
+                                  ("block_sum", integrate.block_sum))}))
 """
 
 

@@ -75,7 +75,7 @@ def _dispatchers(pairs: bool, meshes: bool) -> dict:
     from minidem.engine import blowup, integrate
     from minidem.geometry import neighbours
 
-    found = {"survey": blowup.survey, "kinetic_energy": integrate.kinetic_energy}
+    found = {"block_sum": integrate.block_sum, "survey": blowup.survey, "kinetic_energy": integrate.kinetic_energy}
     if pairs:
         found.update(build_pairs=neighbours.build_pairs, carry_history=neighbours.carry_history,
                      reverse_index=neighbours.fill_reverse_index)
@@ -127,15 +127,20 @@ def compile_shared(pairs: bool, meshes: bool) -> None:
 
 
 def compile_guard(reverse: bool = False) -> None:
-    """Compile (into numba's cache) the blow-up guard's survey and the kinetic energy
-    (``reverse``: in the other order, for a second process doing the same, see
-    ``minidem.engine.helper.compile_kernel_of_scene``)."""
+    """Compile (into numba's cache) the kernel's block sum of the energy samples, the
+    blow-up guard's survey and the kinetic energy (``reverse``: in the other order, for a
+    second process doing the same, see ``minidem.engine.helper.compile_kernel_of_scene``).
+
+    The block sum first: the kernel's typing compiles it (a dispatcher of its own, called
+    in a parallel loop), 0.15-0.2 s on the run's critical path unless it is cached by then
+    (first run of scenarios/oblique.toml, numba's compile events)."""
     import numpy as np
 
     from minidem.engine import blowup, integrate
 
     position, vector, scalar = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), np.zeros((2, 3)), np.ones(2)
-    calls = [lambda: blowup.survey(position, vector, vector, vector, vector, scalar, scalar, position, np.zeros(3),
+    calls = [lambda: integrate.block_sum(0, scalar),
+             lambda: blowup.survey(position, vector, vector, vector, vector, scalar, scalar, position, np.zeros(3),
                                    np.zeros(3), np.zeros(3)),
              lambda: integrate.kinetic_energy(scalar, scalar, vector, vector)]
     for call in reversed(calls) if reverse else calls:
