@@ -14,7 +14,8 @@ import numpy as np
 import minidem
 
 radius = 1e-3  # m
-# a 4 x 4 x 4 block of centres 2.5 radii apart, its lowest layer 1 mm above the floor
+# a 4 x 4 x 4 block of centres 2.5 radii apart, its lowest spheres 2 mm above the floor
+# (centres at 2 radii + 1 mm)
 grid = np.arange(4) * 2.5 * radius + 2.0 * radius
 x, y, z = np.meshgrid(grid, grid, grid + 1e-3, indexing="ij")
 centres = np.column_stack([x.ravel(), y.ravel(), z.ravel()])
