@@ -145,21 +145,29 @@ FAKE_PLUGINS = {
             return constants[0] * normal_overlap, 0.0, 0.0, 0.0, -relative_spin[0] * dt, 0.0, 0.0
 
         @numba.njit
+        def no_inertia_couple_force(constants, effective_radius, effective_mass, normal_overlap,
+                                    normal_overlap_increment, normal_velocity, tangential_increment,
+                                    tangential_velocity, history, rotation_increment, relative_spin, normal):
+            return constants[0] * normal_overlap, 0.0, 0.0, 0.0, -1e-6 * relative_spin[0], 0.0, 0.0
+
+        @numba.njit
         def couple_force(constants, effective_radius, effective_mass, normal_overlap, normal_overlap_increment,
                          normal_velocity, tangential_increment, tangential_velocity, history, rotation_increment,
-                         relative_spin, normal):
+                         relative_spin, normal, rolling_inertia):
             return constants[0] * normal_overlap, 0.0, 0.0, 0.0, -1e-6 * relative_spin[0], 0.0, 0.0
 
         @numba.njit
         def swapped_couple_force(constants, effective_radius, effective_mass, normal_overlap,
                                  normal_overlap_increment, normal_velocity, tangential_increment,
-                                 tangential_velocity, history, rotation_increment, normal, relative_spin):
+                                 tangential_velocity, history, rotation_increment, normal, relative_spin,
+                                 rolling_inertia):
             return constants[0] * normal_overlap, 0.0, 0.0, 0.0, -1e-6 * relative_spin[0], 0.0, 0.0
 
         @numba.njit
         def four_value_couple_force(constants, effective_radius, effective_mass, normal_overlap,
                                     normal_overlap_increment, normal_velocity, tangential_increment,
-                                    tangential_velocity, history, rotation_increment, relative_spin, normal):
+                                    tangential_velocity, history, rotation_increment, relative_spin, normal,
+                                    rolling_inertia):
             return constants[0] * normal_overlap, 0.0, 0.0, 0.0  # a couple law returns 7 numbers
 
         @numba.njit
@@ -194,6 +202,7 @@ FAKE_PLUGINS = {
             registry.add(law("fake_three_values", force=three_values_force))
             registry.add(law("fake_short", force=short_force))
             registry.add(law("fake_old_couple", force=old_couple_force, couples=True))
+            registry.add(law("fake_no_inertia_couple", force=no_inertia_couple_force, couples=True))
             registry.add(law("fake_four_value_couple", force=four_value_couple_force, couples=True))
             registry.add(law("fake_couple", force=couple_force, couples=True))
             registry.add(law("fake_swapped_couple", force=swapped_couple_force, couples=True))
@@ -361,7 +370,11 @@ def test_a_plugin_alias_never_takes_a_builtin_name_and_aliases_are_checked(fake_
     assert "takes 4 arguments" in broken["fake_short"].reason and "tangential_velocity" in broken["fake_short"].reason
     # a couple law written for the earlier contract (relative_spin, normal, dt): the same
     # count, so it is recognised by its names and told what the engine passes now
-    assert "now passes (rotation_increment, relative_spin, normal)" in broken["fake_old_couple"].reason
+    assert "now passes (rotation_increment, relative_spin, normal, rolling_inertia)" in broken["fake_old_couple"].reason
+    # and one written for the contract of the morning of 2026-11-28, before the pair's
+    # rolling inertia was passed (an EPSD dashpot between spheres needs it)
+    assert ("takes (rotation_increment, relative_spin, normal) last" in broken["fake_no_inertia_couple"].reason
+            and "rolling_inertia last" in broken["fake_no_inertia_couple"].reason)
     # two 3-tuples swapped compile and run wrong: one of the engine's names at another
     # place is refused (a plugin author's review, 2026-11-28; other names are free)
     assert ("takes 'normal' as argument 11, where the engine passes 'relative_spin' ('normal' is argument 12)"

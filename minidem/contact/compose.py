@@ -39,7 +39,7 @@ import numba
 
 from minidem.contact import declarations
 
-_GENERATOR_VERSION = "5"  # bump when the generated source below changes shape
+_GENERATOR_VERSION = "6"  # bump when the generated source below changes shape
 
 
 def check_combination(parts: tuple[declarations.ContactPart, ...]) -> None:
@@ -252,7 +252,7 @@ def _couple_lines(call: dict, lines: list, imports: list, load: str = "normal_fo
         lines.append("    mx, my, mz = 0.0, 0.0, 0.0")
     if "rolling" in call:
         lines.append(f"    mx, my, mz = rolling_part(\n        {call['rolling'][0]}, effective_radius, effective_mass, "
-                     f"normal_overlap, contact_radius, stiffness, {load},\n        rolling_increment, "
+                     f"rolling_inertia, normal_overlap, contact_radius, stiffness, {load},\n        rolling_increment, "
                      f"rolling_velocity, {call['rolling'][1]})")
     if "twisting" in call:
         lines.append(f"    twist = twisting_part(\n        {call['twisting'][0]}, effective_radius, effective_mass, "

@@ -38,8 +38,14 @@ FORCE_ARGUMENTS = ("constants", "effective_radius", "effective_mass", "normal_ov
 # and returns (fn, ftx, fty, ftz, mx, my, mz), the couple on the first body. As with the
 # tangential pair above, the increment (what a spring integrates: the relative spin of
 # the drift times dt, exact to second order) and the velocity (what a dashpot reads: at
-# the step's end where the couple acts, when the kernel predicts it) are handed apart
-COUPLE_ARGUMENTS = ("rotation_increment", "relative_spin", "normal")
+# the step's end where the couple acts, when the kernel predicts it) are handed apart.
+# rolling_inertia (kg m^2) is the pair's equivalent moment of inertia for their relative
+# rolling about the contact point, 1/(1/(I_i + m_i r_i^2) + 1/(I_j + m_j r_j^2)) =
+# 1.4 (m_i r_i^2)(m_j r_j^2)/(m_i r_i^2 + m_j r_j^2) for spheres, 1.4 m_i r_i^2 at a wall
+# (Ai et al. 2011, model C's I_r; LIGGGHTS' rolling epsd). It is not a function of m* and
+# R*: 1.4 m* R*^2, which minidem's epsd used until 2026-11-28, is a quarter of it between
+# equal spheres
+COUPLE_ARGUMENTS = ("rotation_increment", "relative_spin", "normal", "rolling_inertia")
 
 
 def _is_number(value) -> bool:
@@ -373,8 +379,10 @@ PART_ARGUMENTS = {
     # rolling_increment: the rotation of the first body relative to the second over the
     # step, in the tangent plane (rad; a vector of the tangent plane, like a history
     # vector); rolling_velocity: that relative spin at the step's end (rad/s)
-    "rolling": ("constants", "effective_radius", "effective_mass", "normal_overlap", "contact_radius",
-                "normal_stiffness", "normal_force", "rolling_increment", "rolling_velocity", "history"),
+    # rolling_inertia: the pair's moment of inertia for relative rolling (COUPLE_ARGUMENTS), kg m^2
+    "rolling": ("constants", "effective_radius", "effective_mass", "rolling_inertia", "normal_overlap",
+                "contact_radius", "normal_stiffness", "normal_force", "rolling_increment", "rolling_velocity",
+                "history"),
     # -> the couple about the normal on the first body, N m (positive along n);
     # twisting_increment: the relative rotation about n over the step (rad)
     "twisting": ("constants", "effective_radius", "effective_mass", "normal_overlap", "contact_radius",

@@ -36,10 +36,13 @@ def minidem_register_laws(registry):
       normal_overlap_increment, normal_velocity, tangential_increment,
       tangential_velocity, history) -> (fn, ftx, fty, ftz)``; a scenario names it with
       ``law = "name"``. A law declared with ``couples=True`` (rolling or twisting
-      resistance of its own) takes three more arguments, ``rotation_increment`` (the
+      resistance of its own) takes four more arguments, ``rotation_increment`` (the
       first body's rotation relative to the second over the step, rad, a 3-tuple: what a
       spring integrates), ``relative_spin`` (w_i - w_j at the step's end, rad/s: what a
-      dashpot reads) and ``normal`` (n, from the second body to the first), and returns
+      dashpot reads), ``normal`` (n, from the second body to the first) and
+      ``rolling_inertia`` (the pair's moment of inertia for relative rolling about the
+      contact point, kg m^2: 1/(1/(1.4 m_i r_i^2) + 1/(1.4 m_j r_j^2)), 1.4 m r^2 at a
+      wall; what an EPSD rolling dashpot's critical damping reads), and returns
       ``(fn, ftx, fty, ftz, mx, my, mz)``, the last three the couple on the first body
       (the second gets its opposite; at a wall the sphere is the first body).
     * :class:`minidem.contact.ContactPart`: one part of a model, of one kind

@@ -486,9 +486,34 @@ def _preset_problem(preset) -> str | None:
     return None
 
 
-# a couple law's last arguments until 2026-11-28 (one spin for the springs' increments and
-# the dashpots alike), recognised to say what changed
-_OLD_COUPLE_ARGUMENTS = ("relative_spin", "normal", "dt")
+# the arguments of earlier minidems, recognised to say what changed (numba's typing error
+# would not say why): a couple law's last ones ("couple") and a rolling part's whole list
+_ROLLING_INERTIA = ("the pair's moment of inertia for their relative rolling about the contact point, kg m^2 "
+                    "(Ai et al. 2011's I_r, for an EPSD dashpot)")
+_EARLIER_ARGUMENTS = (
+    # first (to 2026-11-27): one spin for the springs' increments and the dashpots alike
+    ("couple", ("relative_spin", "normal", "dt"),
+     f"the step's relative rotation for springs (was relative_spin * dt), the relative spin for dashpots, and "
+     f"rolling_inertia, {_ROLLING_INERTIA}"),
+    # then (2026-11-28): the rotation and the spin apart, no rolling inertia
+    ("couple", ("rotation_increment", "relative_spin", "normal"), f"rolling_inertia last, {_ROLLING_INERTIA}"),
+    ("rolling", ("constants", "effective_radius", "effective_mass", "normal_overlap", "contact_radius",
+                 "normal_stiffness", "normal_force", "rolling_increment", "rolling_velocity", "history"),
+     f"rolling_inertia after effective_mass, {_ROLLING_INERTIA}"),
+)
+
+
+def _earlier_arguments_problem(func, field: str, names: tuple[str, ...], arguments: tuple[str, ...]) -> str | None:
+    """The message for a function written for the arguments of an earlier minidem."""
+    for applies_to, earlier, change in _EARLIER_ARGUMENTS:
+        if applies_to == "rolling" and names == earlier and arguments == PART_ARGUMENTS["rolling"]:
+            return (f"'{field}' ({func.__qualname__}) takes the arguments of a rolling part of an earlier minidem; "
+                    f"the engine now passes ({', '.join(arguments)}): {change}")
+        if (applies_to == "couple" and names[-len(earlier):] == earlier
+                and arguments[-len(COUPLE_ARGUMENTS):] == COUPLE_ARGUMENTS):
+            return (f"'{field}' ({func.__qualname__}) takes ({', '.join(earlier)}) last, the couple arguments of an "
+                    f"earlier minidem; the engine now passes ({', '.join(COUPLE_ARGUMENTS)}): {change}")
+    return None
 
 
 def _compiled_function_problem(function, field: str, arguments: tuple[str, ...]) -> str | None:
@@ -504,14 +529,12 @@ def _compiled_function_problem(function, field: str, arguments: tuple[str, ...])
         return str(exc)
     given = [p for p in inspect.signature(func).parameters.values()
              if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    earlier = _earlier_arguments_problem(func, field, tuple(p.name for p in given), arguments)
+    if earlier:
+        return earlier
     if len(given) != len(arguments):
         return (f"'{field}' ({func.__qualname__}) takes {len(given)} arguments; the engine calls it with "
                 f"{len(arguments)}: ({', '.join(arguments)})")
-    if tuple(p.name for p in given[-3:]) == _OLD_COUPLE_ARGUMENTS and arguments[-3:] == COUPLE_ARGUMENTS:
-        # the same count, other meanings: numba's typing error would not say why
-        return (f"'{field}' ({func.__qualname__}) takes ({', '.join(_OLD_COUPLE_ARGUMENTS)}) last, the couple "
-                f"arguments of an earlier minidem; the engine now passes ({', '.join(COUPLE_ARGUMENTS)}): the "
-                "step's relative rotation for springs (was relative_spin * dt) and the relative spin for dashpots")
     # any names will do, but one of the engine's at another place is a swap (two vectors
     # of the same type, an increment and a velocity, compile either way and run wrong)
     for at, (parameter, expected) in enumerate(zip(given, arguments), start=1):
@@ -699,7 +722,9 @@ def history_overrun(law: ContactLaw, constants_row, effective_radius: float, eff
                      velocity, history)
         if law.couples:
             spin = (40.0 * math.cos(2.0 * phase), 20.0 * math.sin(3.0 * phase), 30.0 * math.cos(phase))
-            arguments += ((spin[0] * dt, spin[1] * dt, spin[2] * dt), spin, (0.0, 0.0, 1.0))
+            # the rolling inertia of a sphere at a wall, 1.4 m r^2 (COUPLE_ARGUMENTS)
+            arguments += ((spin[0] * dt, spin[1] * dt, spin[2] * dt), spin, (0.0, 0.0, 1.0),
+                          1.4 * effective_mass * effective_radius * effective_radius)
         try:
             force(*arguments)
         except NumbaError:

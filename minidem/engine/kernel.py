@@ -304,7 +304,8 @@ def rotate_history(history, previous_normal, normal):
 # triangles and neighbours therefore live in force_range itself.
 @numba.njit(cache=True, inline="always")
 def contact_response(law, constants_row, history, overlap, previous, normal, previous_normal, curved, vi, wi, vj,
-                     wj, to_end, lever_i, lever_j, lever_growth, effective_radius, effective_mass, dt, stats):
+                     wj, to_end, lever_i, lever_j, lever_growth, effective_radius, effective_mass, rolling_inertia, dt,
+                     stats):
     """The one evaluation every contact goes through (sphere-plane, -cylinder,
     -triangle and -sphere): history turned with the contact, contact-point velocity and
     the law. Vectors are 3-tuples; n points from the partner to i. ``curved``: the normal
@@ -327,6 +328,7 @@ def contact_response(law, constants_row, history, overlap, previous, normal, pre
     ``to_end`` = (dv, dw_i, dw_j), 3-tuples joined: the change of v_i - v_j and of
     each spin from the drift's velocities here to the step's end (END_VELOCITY; else
     NO_CHANGE): the law's velocities are taken there, the increment with the drift's.
+    ``rolling_inertia``: the pair's, for a law with couples (COUPLES; declarations.COUPLE_ARGUMENTS).
 
     A wall is a partner that does not move (v_j = w_j = 0, lever_j = 0); its lever arm
     lever_i is the undeformed radius, as in the paper's rigid-body analysis (eqs 3-8).
@@ -373,7 +375,8 @@ def contact_response(law, constants_row, history, overlap, previous, normal, pre
         fn, ftx, fty, ftz, mx, my, mz = law(
             constants_row, effective_radius, effective_mass, overlap, overlap - max(previous, 0.0), normal_velocity,
             increment, tangential_velocity, history, (sx * dt, sy * dt, sz * dt),
-            (sx + to_end[3] - to_end[6], sy + to_end[4] - to_end[7], sz + to_end[5] - to_end[8]), normal)
+            (sx + to_end[3] - to_end[6], sy + to_end[4] - to_end[7], sz + to_end[5] - to_end[8]), normal,
+            rolling_inertia)
         ok = finite(fn, ftx, fty, ftz) and finite(mx, my, mz, 0.0)
     else:
         fn, ftx, fty, ftz = law(constants_row, effective_radius, effective_mass, overlap,
@@ -409,9 +412,12 @@ def evaluate_contact(acc, constants_row, history, overlap, previous, normal, pre
     """``contact_response`` added to acc (``add_contact``): a wall contact's evaluation
     (the wall at rest, no lever arm of its own). Returns (acc, then contact_response's
     values)."""
+    # a sphere's rolling inertia about its contact point, I + m r^2 = 1.4 m r^2 (the wall's
+    # term of declarations.COUPLE_ARGUMENTS is absent: it does not turn)
+    rolling_inertia = 1.4 * effective_mass * effective_radius * effective_radius if COUPLES else 0.0
     on_i, direction, couple, fn, ft, increment, ok = contact_response(
         law_force_alone, constants_row, history, overlap, previous, normal, previous_normal, curved, vi, wi, ZERO,
-        ZERO, to_end, lever_i, 0.0, 0.0, effective_radius, effective_mass, dt, stats)
+        ZERO, to_end, lever_i, 0.0, 0.0, effective_radius, effective_mass, rolling_inertia, dt, stats)
     return add_contact(acc, lever_i, on_i, direction, couple), on_i, direction, couple, fn, ft, increment, ok
 
 
@@ -482,12 +488,16 @@ def evaluate_pair_tile(count, rows, constants, tile, tile_history, response, dt,
         # a few 1e-4 of the distance: the bound only keeps a wild step finite
         back = dt * inverse
         seen = 1.0 / max(1.0 - back * (dvx * nx + dvy * ny + dvz * nz), 0.5)
+        rolling_inertia = 0.0
+        if COUPLES:  # each sphere's inertia about the contact point, in series (declarations.COUPLE_ARGUMENTS)
+            about_contact_i, about_contact_j = 1.4 * mi * ri * ri, 1.4 * mj * rj * rj
+            rolling_inertia = about_contact_i * about_contact_j / (about_contact_i + about_contact_j)
         on_i, direction, couple, _, _, _, ok = contact_response(
             law_force, constants[rows[k]], history_column(tile_history, k, TILE_CONTACTS), overlap, tile[T_PREVIOUS, k],
             (nx, ny, nz), ((nx - back * dvx) * seen, (ny - back * dvy) * seen, (nz - back * dvz) * seen), True,
             (dvx, dvy, dvz), wi, ZERO, wj, to_end,
             ri - 0.5 * overlap, rj - 0.5 * overlap, 0.25 * (overlap - max(tile[T_PREVIOUS, k], 0.0)),
-            ri * rj * mass_sum * shared, mi * mj * reach * shared, dt, stats)
+            ri * rj * mass_sum * shared, mi * mj * reach * shared, rolling_inertia, dt, stats)
         response[R_ON_I, k], response[R_ON_I + 1, k], response[R_ON_I + 2, k] = on_i
         response[R_DIRECTION, k], response[R_DIRECTION + 1, k], response[R_DIRECTION + 2, k] = direction
         response[R_COUPLE, k], response[R_COUPLE + 1, k], response[R_COUPLE + 2, k] = couple

@@ -53,8 +53,8 @@ _HISTORY = contact_history.contact_history
 # the argument types the kernel passes a law's force function (minidem.contact.declarations.FORCE_ARGUMENTS)
 _FORCE_SIGNATURE = (_ROW, *(_FLOAT,) * 5, _VECTOR, _VECTOR, _HISTORY)
 # a law with a couple (law.couples) also takes the relative rotation over the step, the
-# relative spin and the normal
-_COUPLE_FORCE_SIGNATURE = (*_FORCE_SIGNATURE, _VECTOR, _VECTOR, _VECTOR)
+# relative spin, the normal and the pair's rolling inertia
+_COUPLE_FORCE_SIGNATURE = (*_FORCE_SIGNATURE, _VECTOR, _VECTOR, _VECTOR, _FLOAT)
 
 
 def force_signature(law: declarations.ContactLaw) -> tuple:
@@ -67,7 +67,7 @@ _PART_SIGNATURES = {
     "normal": ((_ROW, *(_FLOAT,) * 4, _HISTORY), 3),
     "damping": ((_ROW, *(_FLOAT,) * 6), 0),
     "tangential": ((_ROW, *(_FLOAT,) * 7, _VECTOR, _VECTOR, _HISTORY), 3),
-    "rolling": ((_ROW, *(_FLOAT,) * 6, _VECTOR, _VECTOR, _HISTORY), 3),
+    "rolling": ((_ROW, *(_FLOAT,) * 7, _VECTOR, _VECTOR, _HISTORY), 3),
     "twisting": ((_ROW, *(_FLOAT,) * 8, _HISTORY), 0),
 }
 

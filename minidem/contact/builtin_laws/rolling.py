@@ -21,8 +21,9 @@ ROLLING_FRICTION = Parameter("rolling_friction", None, "-", "coefficient of roll
 
 # -- rolling ---------------------------------------------------------------------------
 @numba.njit(cache=True, inline="always")
-def constant_torque_rolling(constants, effective_radius, effective_mass, normal_overlap, contact_radius,
-                            normal_stiffness, normal_force, rolling_increment, rolling_velocity, history):
+def constant_torque_rolling(constants, effective_radius, effective_mass, rolling_inertia, normal_overlap,
+                            contact_radius, normal_stiffness, normal_force, rolling_increment, rolling_velocity,
+                            history):
     """M = -mu_r R* Fn w_r / |w_r| (Ai et al. model A): constant magnitude while rolling."""
     wx, wy, wz = rolling_velocity
     spin = norm3(wx, wy, wz)
@@ -48,12 +49,13 @@ CONSTANT_TORQUE = ContactPart(
 
 
 @numba.njit(cache=True, inline="always")
-def epsd_rolling(constants, effective_radius, effective_mass, normal_overlap, contact_radius, normal_stiffness,
-                 normal_force, rolling_increment, rolling_velocity, history):
+def epsd_rolling(constants, effective_radius, effective_mass, rolling_inertia, normal_overlap, contact_radius,
+                 normal_stiffness, normal_force, rolling_increment, rolling_velocity, history):
     """Elastic-plastic spring-dashpot (Ai et al. model C): a spring couple
     M_k += -k_r w_r dt, k_r = 2.25 kn mu_r^2 R*^2, capped at mu_r R* Fn (the plastic
-    limit), plus a dashpot -eta_r 2 sqrt(I_r k_r) w_r while below the limit,
-    I_r = 7/5 m* R*^2 (a sphere rolling about its contact point)."""
+    limit), plus a dashpot -eta_r 2 sqrt(I_r k_r) w_r while below the limit, I_r the
+    pair's moment of inertia for relative rolling about the contact point:
+    1/I_r = 1/(I_i + m_i r_i^2) + 1/(I_j + m_j r_j^2), 7/5 m r^2 for a sphere at a wall."""
     mu_r, eta_r = constants[0], constants[1]
     radius = effective_radius
     stiffness = 2.25 * normal_stiffness * mu_r * mu_r * radius * radius
@@ -65,7 +67,7 @@ def epsd_rolling(constants, effective_radius, effective_mass, normal_overlap, co
     history[0], history[1], history[2] = mx, my, mz
     if full or eta_r == 0.0:
         return mx, my, mz
-    damping = eta_r * 2.0 * math.sqrt(1.4 * effective_mass * radius * radius * stiffness)
+    damping = eta_r * 2.0 * math.sqrt(rolling_inertia * stiffness)
     return (mx - damping * rolling_velocity[0], my - damping * rolling_velocity[1],
             mz - damping * rolling_velocity[2])
 
@@ -93,8 +95,8 @@ LAMMPS = "LAMMPS GRANULAR pair style (Thompson et al. 2022, Comput. Phys. Commun
 
 
 @numba.njit(cache=True, inline="always")
-def sds_rolling(constants, effective_radius, effective_mass, normal_overlap, contact_radius, normal_stiffness,
-                normal_force, rolling_increment, rolling_velocity, history):
+def sds_rolling(constants, effective_radius, effective_mass, rolling_inertia, normal_overlap, contact_radius,
+                normal_stiffness, normal_force, rolling_increment, rolling_velocity, history):
     """Spring-dashpot-slider (LAMMPS' rolling sds, Luding 2008): a rolling "force"
     F_r = -k_roll xi - gamma_roll v_roll on the rolling displacement xi (the integral of
     v_roll = R* w_r x n), capped as a whole at mu_r Fn, and the couple R* n x F_r. In
