@@ -447,7 +447,7 @@ def test_settle_pile_with_rolling_and_twisting_resistance_comes_to_rest():
     # size, ~4 layers) for 0.4 s: with rolling (EPSD) and twisting (SDS) resistance the
     # modes the test above leaves alive (rolling on the floor or round a neighbour,
     # spinning about the normal) are dissipated too, and the kinetic energy falls below
-    # 1e-8 of its peak (issue 14; measured 4e-18 at 0.375 s, where the paper's laws alone
+    # 1e-8 of its peak (issue 14; measured 8.8e-20 at 0.375 s, where the paper's laws alone
     # stay near 1e-4). Nobody below the floor or outside the box.
     scene = scenario.load_scene("scenarios/settle.toml", ["fill.0.count=300", "run.end_time=0.4"] + ONE_THREAD)
     sim = simulation.Simulation(scene)
