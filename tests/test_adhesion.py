@@ -186,7 +186,9 @@ def test_jkr_sticks_below_the_thornton_ning_velocity(tmp_path):
     speed, result = wall_impact(tmp_path, 0.5)
     trace = result.trace
     touched = np.flatnonzero(trace[:, 1] >= 0.0)[0]
-    assert np.all(trace[touched:, 2] != 0.0) or np.all(trace[touched:, 1] > -WALL["critical_separation"])
+    # the contact never ends (a JKR force at every step after the touch: it is zero only
+    # once the overlap passes -d_c), and the sphere stays well inside the well
+    assert np.all(trace[touched:, 2] != 0.0)
     assert trace[touched:, 1].min() > -0.5 * WALL["critical_separation"]
     assert result.position[0, 2] < RADIUS + WALL["critical_separation"]
     # the well gives kinetic energy (the attraction pulls the sphere in) without the

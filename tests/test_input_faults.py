@@ -80,6 +80,9 @@ DERIVED = {
     "particle_velocity_1e200": (TWO_SPHERES, ["particles.0.velocity=[1e200, 0.0, 0.0]"], "particles[0].velocity"),
     "particle_radius_tiny": (TWO_SPHERES, ["particles.0.radius=1e-110"], "particles[0].radius"),
     "pair_end_time_1e300": (TWO_SPHERES, ["run.end_time=1e300", 'run.stop="time"'], "run.end_time"),
+    # a law parameter: restitution 1e-20 is a damping ratio of 5e9 (its stability limit
+    # underflows); it divided by zero in prepare(), and then the materials were blamed
+    "restitution_1e-20": (OBLIQUE, ['contact.law="ls"', "contact.restitution=1e-20"], "contact.restitution"),
 }
 
 
@@ -627,3 +630,14 @@ def test_a_slow_prepare_says_what_is_being_prepared(monkeypatch):
     told.clear()
     simulation.Simulation(scene, compile=False, notify=told.append)  # a fast prepare: nothing said
     assert told == []
+
+
+def test_a_poisson_ratio_of_one_is_refused_naming_it_where_two_such_bodies_touch(capsys, tmp_path):
+    # nu = 1 is accepted with a warning (issue 2: up to 1), but a sphere and a wall of that
+    # material have an infinite contact modulus E / (1 - nu^2): a division by zero, which
+    # was refused as "give values of ordinary magnitude" with the materials' other values
+    # named first (a robustness review, 2026-11-28)
+    code, err = main(capsys, "run", OBLIQUE, "--out", tmp_path, *sets("materials.glass.poisson_ratio=1.0"))
+    assert code == 2, err
+    assert "materials.glass.poisson_ratio = 1: two bodies of such a material have an infinite contact modulus" in err
+    assert "Traceback" not in err

@@ -60,6 +60,12 @@ def scene_inputs(scene) -> list[tuple[str, float]]:
         if largest != smallest:
             inputs.append((_key_of(scene.particle_name(largest), "radius"), float(scene.radius[largest])))
     raw = scene.raw if isinstance(scene.raw, dict) else {}
+    # the law's parameters (a restitution of 1e-20 is a damping ratio of 5e9, whose
+    # stability limit underflows: a robustness review found the materials blamed)
+    contact = raw.get("contact") if isinstance(raw.get("contact"), dict) else {}
+    for key, value in contact.items():
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            inputs.append((f"contact.{key}", float(value)))
     for section, key in (("impact", "speed"), ("impact", "gap"), ("run", "dt"), ("run", "end_time"),
                          ("run", "skin")):
         value = raw.get(section, {}).get(key) if isinstance(raw.get(section), dict) else None
@@ -148,6 +154,14 @@ def arithmetic(scene, what: str):
         except (ArithmeticError, ValueError) as exc:
             if isinstance(exc, ValueError) and "math domain error" not in str(exc):
                 raise
+            # nu = 1, accepted (issue 2: up to 1), divides by zero only where two bodies of
+            # it touch: E / (1 - nu^2), not a value of extreme magnitude to name
+            singular = [f"materials.{m.name}.poisson_ratio = 1" for m in scene.materials if m.poisson_ratio == 1.0]
+            if singular:
+                raise ScenarioError(
+                    f"{scene.source}: {what} ({type(exc).__name__}: {exc}): {', '.join(singular)}: two bodies "
+                    "of such a material have an infinite contact modulus E / (1 - nu^2); give a Poisson ratio "
+                    "below 1 (the paper's kappa studies go up to 5/6)") from None
             raise refusal(scene, f"{what} ({type(exc).__name__}: {exc})") from None
         except LawError as exc:
             # a law whose prepare() or stiffness() overflowed on an extreme input (1e308 Pa):

@@ -89,8 +89,11 @@ def linear_dashpot_restitution(damping_ratio):
     elif damping_ratio == 1.0:
         duration = 2.0
     else:
-        w = math.sqrt(damping_ratio * damping_ratio - 1.0)
-        duration = math.log((damping_ratio + w) / (damping_ratio - w)) / w
+        # ln((zeta + W)/(zeta - W)) = 2 ln(zeta + W), their product being 1: the quotient
+        # divided by zero once zeta - W rounded to 0 (e below ~1e-17, restitution = 1e-20:
+        # a robustness review), and zeta^2 overflows before W does as zeta sqrt(1 - 1/zeta^2)
+        w = damping_ratio * math.sqrt(1.0 - 1.0 / (damping_ratio * damping_ratio))
+        duration = 2.0 * math.log(damping_ratio + w) / w
     return math.exp(-damping_ratio * duration)
 
 
