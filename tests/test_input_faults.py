@@ -641,3 +641,25 @@ def test_a_poisson_ratio_of_one_is_refused_naming_it_where_two_such_bodies_touch
     assert code == 2, err
     assert "materials.glass.poisson_ratio = 1: two bodies of such a material have an infinite contact modulus" in err
     assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("overrides", [["materials.glass.youngs_modulus=1.0"], ["impact.speed=5000"]],
+                         ids=["soft", "fast"])
+def test_an_overlap_beyond_the_radius_is_refused_before_the_run(overrides, capsys, tmp_path):
+    # Hertz's overlap at the impact (eq 12: 4.15 m for E = 1 Pa, 0.048 m at 5 km/s) is more
+    # than the 25 mm sphere: it passes through the wall by geometry, whatever the step. It
+    # failed mid-run as "the time step is too large", and each smaller step suggested failed
+    # the same way (a robustness review, 2026-11-28)
+    err = refused(capsys, "run", OBLIQUE, "--out", tmp_path, *sets(*overrides))
+    assert "more than the sphere's radius 0.025 m" in err and "no time step helps" in err, err
+    assert overrides[0].split("=")[0] in err
+
+
+def test_an_energy_blow_up_names_the_law_as_the_other_cause(capsys, tmp_path):
+    # hmd at mu = 1000 creates energy (the independent reference solver: et = -2.48 at
+    # 30 deg; docs/laws.md, 'Laws that create energy'): the guard stops the run at 5.6
+    # times the energy budget at any time step, and the failure must not leave a smaller
+    # step as the only cure
+    code, err = main(capsys, "run", OBLIQUE, "--out", tmp_path, *sets("contact.friction=1000"))
+    assert code == 1, err
+    assert "blow-up (energy)" in err and "the contact law 'hmd' creates it (docs/laws.md" in err, err

@@ -451,9 +451,16 @@ class RunLoop:
             self.loop["gravity_work_max"] = work_max
         if fault is not None:
             touching = self.blowup.contacts_of(self.state, fault.particle, self.scene.scenario_index)
+            advice = None
+            if fault.what == "energy":
+                # energy from nowhere is an unstable step or a law that creates it, which no
+                # step cures (hmd at a friction of 1000: the same stop at every step tried)
+                advice = (f"{self.sim.suggested_time_step()}; if a smaller step stops the same way, at about the "
+                          f"same energy, the contact law '{self.sim.law.name}' creates it (docs/laws.md, 'Laws that "
+                          "create energy')")
             self.fail(f"blow-up ({fault.what}) at step {step} (t = {at_time:.6g} s): {fault.detail}; "
                       f"particle {self.scene.scenario_index(fault.particle)} touches "
-                      + (", ".join(touching) if touching else "nothing"))
+                      + (", ".join(touching) if touching else "nothing"), advice)
 
     def check_status(self, steps):
         """A fault the kernel stopped for (a non-finite force, a sphere through a wall)."""

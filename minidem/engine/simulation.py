@@ -488,11 +488,19 @@ class Simulation:
         # derived for it); symplectic Euler closes with no kick: nothing predicted
         predicted = self.end_velocity and integrate.OPENING_KICK[self.scene.integrator] == 0.5
         best, why, damped = math.inf, "no contact possible", False
+        # the deepest overlap over the sphere's radius, for derived.check_simulation: (ratio,
+        # overlap m, radius m, contact kind, what sets it)
+        self.deepest_overlap = (0.0, 0.0, 0.0, "", "")
         for pair, named, r, m, kind in self.contact_kinds():
             k_hertz = 4.0 / 3.0 * pair.effective_modulus * math.sqrt(r)
             impact = (15.0 * m * speed**2 / (16.0 * pair.effective_modulus * math.sqrt(r))) ** 0.4
             weight = (m * gravity / k_hertz) ** (2.0 / 3.0)
             overlap = max(impact, weight)
+            radius = r if kind == "sphere-wall" else 2.0 * r  # a pair's r is R* = R/2
+            if overlap / radius > self.deepest_overlap[0]:
+                cause = (f"a normal impact speed of {speed:.4g} m/s" if impact >= weight
+                         else f"the sphere's weight under gravity of {gravity:.4g} m/s^2")
+                self.deepest_overlap = (overlap / radius, overlap, radius, kind, cause)
             normal, tangential, zeta = laws.law_stiffness(self.law, pair, named, r, m, overlap)
             # name the overlap only when the stiffness depends on it (not for a linear spring)
             depends = laws.law_stiffness(self.law, pair, named, r, m, 2.0 * overlap)[:2] != (normal, tangential)

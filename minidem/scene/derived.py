@@ -185,6 +185,19 @@ def check_simulation(sim) -> None:
         half_skin_squared = math.inf
     if not math.isfinite(half_skin_squared):
         raise refusal(scene, f"neighbour-list skin {sim.skin:.6g} m squared", [("run.skin", sim.skin)])
+    ratio, overlap, radius, kind, cause = getattr(sim, "deepest_overlap", (0.0, 0.0, 0.0, "", ""))
+    if ratio > 1.0:
+        # the sphere would pass through the wall or its partner by geometry, whatever the
+        # time step (a robustness review: it failed mid-run as "the time step is too large",
+        # and each smaller step suggested failed the same way)
+        inputs = [(key, value) for key, value in scene_inputs(scene)
+                  if key.startswith(("materials.", "impact.speed", "run.gravity")) or key.endswith((".radius",
+                                                                                                      ".velocity"))]
+        raise ScenarioError(
+            f"{scene.source}: a {kind} contact would overlap by about {overlap:.3g} m (Hertz, {cause}), more than "
+            f"the sphere's radius {radius:.3g} m: a soft-sphere contact needs overlaps far below the radius, and no "
+            f"time step helps. It comes from {', '.join(f'{key} = {value:.6g}' for key, value in inputs)}: a "
+            "stiffer material, a slower impact or weaker gravity")
     contact_time = sim.reference_contact_time
     if not (contact_time > 0.0):
         raise refusal(scene, f"contact time {contact_time!r} s")
