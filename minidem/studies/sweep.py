@@ -352,6 +352,16 @@ def _plain(value):
 # ---------------------------------------------------------------------------------
 # the journal: one JSON line per finished case, after a header with the plan's hash
 # ---------------------------------------------------------------------------------
+def _complete_row(row: dict) -> bool:
+    """Whether a journalled row is one run_case wrote: its status, error and time, and an
+    ok row's columns (a line of valid JSON missing them, edited or from elsewhere, ended
+    the resumed sweep in a KeyError: a robustness review); another is a case not done."""
+    if row.get("status") not in ("ok", "failed") or not isinstance(row.get("error"), str) \
+            or "wall_time_s" not in row:
+        return False
+    return row["status"] == "failed" or all(k in row for k in ROW_COLUMNS)
+
+
 class Journal:
     """Append-only record of finished cases. Each row is one ``write`` of one line,
     flushed at once (a killed process loses nothing it has written) and synced to disk at
@@ -382,7 +392,8 @@ class Journal:
                 row = json.loads(line)
             except ValueError:
                 continue  # empty, or torn by a crash: that case is simply not done
-            if isinstance(row, dict) and isinstance(row.get("case"), int) and 0 <= row["case"] < header["cases"]:
+            if isinstance(row, dict) and isinstance(row.get("case"), int) and 0 <= row["case"] < header["cases"] \
+                    and _complete_row(row):
                 rows[row["case"]] = row
         return header, rows
 
