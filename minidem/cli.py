@@ -502,14 +502,19 @@ def main(argv=None) -> int:
         parser.commands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
     from minidem.engine import warmup
 
-    if args.handler is command_run:
-        # on a fresh install, the helper that compiles beside the run starts before the
-        # engine is imported here (minidem.engine.warmup.prestart)
-        warmup.prestart()
-    from minidem.contact.laws import LawError
-    from minidem.files import OutputError
-    from minidem.scene.scenario import ScenarioError
-    from minidem.engine.run_loop import RunFailure
+    try:
+        if args.handler is command_run:
+            # on a fresh install, the helper that compiles beside the run starts before the
+            # engine is imported here (minidem.engine.warmup.prestart)
+            warmup.prestart()
+        from minidem.contact.laws import LawError
+        from minidem.files import OutputError
+        from minidem.scene.scenario import ScenarioError
+        from minidem.engine.run_loop import RunFailure
+    except KeyboardInterrupt:  # a Ctrl-C while numba and the engine are imported: no traceback
+        warmup.dismiss()
+        print("minidem: interrupted", file=sys.stderr)
+        return 130
 
     with warnings.catch_warnings():
         warnings.simplefilter("always")

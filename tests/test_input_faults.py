@@ -663,3 +663,36 @@ def test_an_energy_blow_up_names_the_law_as_the_other_cause(capsys, tmp_path):
     code, err = main(capsys, "run", OBLIQUE, "--out", tmp_path, *sets("contact.friction=1000"))
     assert code == 1, err
     assert "blow-up (energy)" in err and "the contact law 'hmd' creates it (docs/laws.md" in err, err
+
+
+def test_a_fill_larger_than_the_machines_memory_is_refused_before_it_is_made(capsys, tmp_path):
+    # a lattice of 1 um beads in a 1 m box is 6.4e16 sites: numpy's MemoryError for
+    # 455 PiB was an internal error (a robustness review, 2026-11-28). The limit is this
+    # machine's memory at BYTES_PER_PARTICLE (591 bytes measured at 1,000,000 particles).
+    path = tmp_path / "huge.toml"
+    path.write_text(textwrap.dedent("""
+        [materials.m]
+        youngs_modulus = 5e6
+        poisson_ratio = 0.3
+        density = 2500.0
+
+        [contact]
+        law = "hm"
+        friction = 0.5
+
+        [[fill]]
+        kind = "lattice"
+        material = "m"
+        radius = 1e-6
+        spacing = 2.5e-6
+        lower = [0.0, 0.0, 0.0]
+        upper = [1.0, 1.0, 1.0]
+
+        [run]
+        dt = 1e-9
+        stop = "time"
+        end_time = 1e-8
+    """))
+    err = refused(capsys, "run", path, "--out", tmp_path / "out")
+    assert "fill[0]: the region's 400000 x 400000 x 400000 sites = 64,000,000,000,000,000 particles would need" in err
+    assert "MemoryError" not in err

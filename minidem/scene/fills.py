@@ -11,6 +11,26 @@ from pathlib import Path
 import numpy as np
 
 
+# what a run holds per particle, measured at 1,000,000 (591 bytes: docs/benchmarks.md, target 3)
+BYTES_PER_PARTICLE = 600
+
+
+def _check_memory(n: int, what: str) -> None:
+    """Refuse a fill whose particles could not be held in this machine's memory, before
+    anything is allocated: numpy's MemoryError for 455 PiB was an internal error (a
+    robustness review)."""
+    import os
+
+    try:
+        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):  # not told: numpy's own error stands
+        return
+    if n * BYTES_PER_PARTICLE > memory:
+        raise ValueError(f"{what} = {n:,} particles would need about {n * BYTES_PER_PARTICLE / 2**30:,.0f} GiB "
+                         f"({BYTES_PER_PARTICLE} bytes a particle); this machine has {memory / 2**30:,.1f} GiB: "
+                         f"at most about {memory // BYTES_PER_PARTICLE:,} particles")
+
+
 def lattice(lower, upper, spacing: float, count: int | None = None, jitter: float = 0.0,
             seed: int = 12345) -> np.ndarray:
     """Simple cubic lattice centres in the box lower..upper, first centre at
@@ -31,6 +51,7 @@ def lattice(lower, upper, spacing: float, count: int | None = None, jitter: floa
     if n > capacity:
         raise ValueError(f"count = {n} exceeds the {capacity} lattice sites ({sites[0]} x {sites[1]} x {sites[2]}) "
                          f"of spacing {spacing:g} m in the region; enlarge upper or reduce count")
+    _check_memory(n, "count" if count is not None else f"the region's {sites[0]} x {sites[1]} x {sites[2]} sites")
     k = np.arange(n)
     index = np.column_stack([k % sites[0], (k // sites[0]) % sites[1], k // (sites[0] * sites[1])])
     position = lower + spacing * (index + 0.5)
@@ -93,6 +114,7 @@ def random_packing(lower, upper, count: int, radius_min: float, radius_max: floa
                          f"random sequential addition of {which} jams below {limit}: enlarge the region or "
                          f"reduce count well below {int(count * limit / fraction)} (the count at that limit), "
                          "or fill loosely and let the particles settle")
+    _check_memory(count, "count")
     cell = 2.0 * radius_max
     grid: dict[tuple, list[int]] = {}
     position = np.empty((count, 3))

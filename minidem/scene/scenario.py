@@ -508,7 +508,13 @@ class _Errors:
         self.source = source
         self.messages: list[str] = []
 
+    # a message quotes the value it refuses; a list of two million numbers quoted whole
+    # was 10 MB on standard error (a robustness review): its start and its length will do
+    LONGEST_MESSAGE = 1000
+
     def add(self, where: str, message: str) -> None:
+        if len(message) > self.LONGEST_MESSAGE:
+            message = f"{message[:self.LONGEST_MESSAGE]} ... ({len(message):,} characters in all)"
         self.messages.append(f"{where}: {message}" if where else message)
 
     def has(self, where: str) -> bool:
