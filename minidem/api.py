@@ -364,6 +364,8 @@ def run(scenario, overrides=None, out: str | Path | None = None, progress: bool 
             if bar is not None:
                 bar.close()
         summary = write_run_files(directory, result) if directory is not None else analysis.summary(result)
+        if frames is not None:
+            frames.succeeded()
     except (run_loop.RunFailure, OutputError):
         # an earlier run's results in the directory must not read as this one's (as minidem run)
         told = set_aside_earlier_results(directory, started) if directory is not None else None

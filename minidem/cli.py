@@ -152,6 +152,8 @@ def command_run(args) -> int:
     except OutputError:
         _say_set_aside(directory, started)
         raise
+    if frames is not None:
+        frames.succeeded()
     if args.quiet:  # --quiet keeps the warnings (docs/cli.md), on standard error
         for warning in summary["warnings"]:
             print(f"minidem: warning: {warning}", file=sys.stderr)

@@ -306,8 +306,30 @@ def test_a_failed_run_does_not_leave_an_earlier_runs_results_looking_like_its_ow
     with pytest.warns(UserWarning) as caught:  # with the unstable time step's own warning
         with pytest.raises(minidem.RunFailure):
             minidem.run(oblique, {"run.dt": 2e-4, "run.allow_unstable_dt": True}, out=tmp_path)
-    assert any("renamed summary.json -> summary.previous.json" in str(w.message) for w in caught)
-    assert not (tmp_path / "summary.json").exists() and (tmp_path / "summary.previous.json").exists()
+    # the first set-aside summary is not overwritten: the second goes to the next free name
+    assert any("renamed summary.json -> summary.previous.2.json" in str(w.message) for w in caught)
+    assert not (tmp_path / "summary.json").exists() and (tmp_path / "summary.previous.2.json").exists()
+    assert (tmp_path / "summary.previous.json").read_bytes() == earlier
+
+
+def test_a_failed_run_keeps_the_earlier_runs_vtk_series_and_a_success_replaces_it(tmp_path):
+    # The VTK series of an earlier run was deleted at a new run's first frame: a run that
+    # then failed left summary.previous.json describing frames that were gone (a
+    # robustness review, 2026-11-28). It is moved to previous_series/ at the first frame,
+    # kept if the run fails, deleted once a run succeeds.
+    small = [arg for o in SMALL_SETTLE + ["run.end_time=0.02"] for arg in ("--set", o)]
+    assert run_cli("run", SETTLE, "--out", tmp_path, "--quiet", *small, "--set", "output.vtk=true").returncode == 0
+    frames = ET.parse(tmp_path / "particles.pvd").getroot().findall(".//DataSet")
+    assert len(frames) >= 3
+    failed = run_cli("run", SETTLE, "--out", tmp_path, "--quiet", *small, "--set", "output.vtk=true",
+                     "--set", "run.dt=1e-3", "--set", "run.allow_unstable_dt=true")
+    assert failed.returncode == 1 and "the VTK series to previous_series/" in failed.stderr, failed.stderr
+    kept = ET.parse(tmp_path / "previous_series" / "particles.pvd").getroot().findall(".//DataSet")
+    assert [f.get("file") for f in kept] == [f.get("file") for f in frames]
+    assert all((tmp_path / "previous_series" / f.get("file")).is_file() for f in kept)
+    again = run_cli("run", SETTLE, "--out", tmp_path, "--quiet", *small, "--set", "output.vtk=true")
+    assert again.returncode == 0 and not (tmp_path / "previous_series").exists()
+    assert len(ET.parse(tmp_path / "particles.pvd").getroot().findall(".//DataSet")) == len(frames)
 
 @pytest.fixture(scope="module")
 def settle_guard():
@@ -565,3 +587,17 @@ def test_an_edited_helper_of_a_plugin_law_rebuilds_its_kernel(tmp_path):
     built = sorted(p.name for p in kernels.glob("*.py"))
     max_overlap(4.0, "again")  # nothing changed: the kernel is reused, not rebuilt
     assert sorted(p.name for p in kernels.glob("*.py")) == built
+
+
+def test_an_earlier_trace_is_not_left_beside_a_later_runs_summary(tmp_path):
+    # a run with output.trace, then one without into the same directory: the first run's
+    # trace.csv stayed beside the second's summary and open_results returned it as the
+    # second run's (a robustness review, 2026-11-28). It is renamed, and the run says so.
+    import minidem
+
+    assert run_cli("run", OBLIQUE, "--out", tmp_path, "--quiet", "--set", "output.trace=true").returncode == 0
+    traced = (tmp_path / "trace.csv").read_bytes()
+    later = run_cli("run", OBLIQUE, "--out", tmp_path, "--quiet", "--set", "impact.angle_deg=60")
+    assert later.returncode == 0 and "trace.csv is an earlier run's" in later.stderr, later.stderr
+    assert not (tmp_path / "trace.csv").exists() and (tmp_path / "trace.previous.csv").read_bytes() == traced
+    assert minidem.open_results(tmp_path).trace is None

@@ -38,7 +38,25 @@ def write_run_files(directory: Path, result) -> dict:
         from minidem.engine.kernel import TRACE_COLUMNS
 
         files.write_csv(Path(directory) / "trace.csv", TRACE_COLUMNS, result.trace.tolist())
+    elif (Path(directory) / "trace.csv").exists():
+        # an earlier run's trace beside this run's summary read as this run's (open_results)
+        import warnings
+
+        warnings.warn(f"{directory}: trace.csv is an earlier run's (this run traced nothing): renamed "
+                      f"{_set_aside(Path(directory) / 'trace.csv')}", stacklevel=2)
     return summary
+
+
+def _set_aside(path: Path) -> str:
+    """Rename ``path`` to NAME.previous.EXT, or NAME.previous.2.EXT and on when that is
+    taken (an earlier set-aside result is never overwritten); returns the new name."""
+    number = 1
+    while True:
+        target = path.with_name(f"{path.stem}.previous{'' if number == 1 else f'.{number}'}{path.suffix}")
+        if not target.exists():
+            path.replace(target)
+            return target.name
+        number += 1
 
 
 def read_columns(path: str | Path) -> dict[str, np.ndarray]:
@@ -188,21 +206,26 @@ def set_aside_earlier_results(directory: str | Path, started: float) -> str | No
     summary.json saw the old success), so they are renamed *.previous.* and kept. Returns
     what to tell the user, or None when there was nothing to move."""
     from minidem.engine.checkpoint import FINAL_STATE
+    from minidem.results.vtk import PREVIOUS_SERIES
 
     moved, kept = [], []
-    for name in ("summary.json", FINAL_STATE):
+    for name in ("summary.json", FINAL_STATE, "trace.csv"):
         path = Path(directory) / name
         try:
             if path.stat().st_mtime >= started:  # this run's own (its final state, then a failed summary)
                 continue
         except OSError:  # absent: the usual case
             continue
-        target = path.with_name(f"{path.stem}.previous{path.suffix}")
         try:
-            path.replace(target)
-            moved.append(f"{name} -> {target.name}")
+            moved.append(f"{name} -> {_set_aside(path)}")
         except OSError as exc:
             kept.append(f"{name} (could not be renamed: {exc.strerror or exc})")
+    series = Path(directory) / PREVIOUS_SERIES
+    try:
+        if series.stat().st_mtime >= started:  # set aside by this run's first frame (SimulationFrames)
+            moved.append(f"the VTK series to {PREVIOUS_SERIES}/")
+    except OSError:
+        pass
     if not moved and not kept:
         return None
     text = f"the earlier run's results in {directory} are not this run's: "

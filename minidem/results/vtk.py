@@ -683,29 +683,64 @@ class VTKSeriesWriter:
         return _unstructured_grid_chunks(pos, connectivity, offsets, types, [], cell_arrays,
                                          self._mode, time_s)
 
-    def remove_earlier_frames(self) -> int:
-        """Delete the frame files an earlier run's series of this name listed in the
-        directory (``{prefix}.pvd`` and ``{prefix}_contacts.pvd``, files named
-        ``{prefix}_NNNNNN.vtu`` or ``{prefix}_contacts_NNNNNN.vtu``): a shorter run writes
-        fewer, and ParaView's file dialog groups every ``particles_*.vtu`` into one series,
-        the two runs' frames mixed. Only files those collections list (never another file
-        of the directory, whatever its name). Before the first frame of a run that does
-        not continue a series; returns how many were removed."""
+    def _earlier_series(self, directory: str) -> list[str]:
+        """The files of a series of this name in ``directory``: the collections
+        (``{prefix}.pvd``, ``{prefix}_contacts.pvd``) and the frames they list, named
+        ``{prefix}_NNNNNN.vtu`` or ``{prefix}_contacts_NNNNNN.vtu`` (never another file of
+        the directory, whatever its name)."""
         from xml.etree import ElementTree
 
         pattern = re.compile(rf"{re.escape(self.prefix)}(_contacts)?_\d{{6}}\.vtu")
-        removed = 0
-        for collection in (self._particles.path, self._contacts.path):
+        found = []
+        for collection in (f"{self.prefix}.pvd", f"{self.prefix}_contacts.pvd"):
+            path = os.path.join(directory, collection)
             try:
-                listed = [entry.get("file", "") for entry in ElementTree.parse(collection).getroot().iter("DataSet")]
-            except (OSError, ElementTree.ParseError):  # none, or not one minidem wrote: nothing to remove
+                listed = [entry.get("file", "") for entry in ElementTree.parse(path).getroot().iter("DataSet")]
+            except (OSError, ElementTree.ParseError):  # none, or not one minidem wrote
                 continue
-            for name in listed:
-                path = os.path.join(self.directory, name)
-                if pattern.fullmatch(name) and os.path.isfile(path) and not os.path.islink(path):
-                    os.remove(path)
-                    removed += 1
-        return removed
+            found.append(collection)
+            found += [name for name in listed if pattern.fullmatch(name)
+                      and os.path.isfile(os.path.join(directory, name))
+                      and not os.path.islink(os.path.join(directory, name))]
+        return found
+
+    def set_aside_earlier_frames(self, folder: str) -> str | None:
+        """Move the series an earlier run left in the directory into its subfolder
+        ``folder`` (the collections' relative names still resolve there), before the first
+        frame of a run that does not continue a series: a shorter run writes fewer frames,
+        and ParaView's file dialog groups every ``particles_*.vtu`` into one series, the
+        two runs' frames mixed. Kept there until the run succeeds
+        (:meth:`discard_set_aside`): a run that fails leaves the earlier run's series
+        whole (a robustness review found it deleted at the first frame). When ``folder``
+        exists already (left by a run that failed: it holds the series before it), the
+        series here, that failed run's, is deleted instead. Returns the folder's path
+        when something was moved."""
+        names = self._earlier_series(self.directory)
+        aside = os.path.join(self.directory, folder)
+        if not names:
+            return None
+        if os.path.isdir(aside):
+            for name in names:
+                if name.endswith(".vtu"):
+                    os.remove(os.path.join(self.directory, name))
+            return None
+        os.makedirs(aside)
+        for name in names:
+            os.replace(os.path.join(self.directory, name), os.path.join(aside, name))
+        return aside
+
+    def discard_set_aside(self, folder: str) -> int:
+        """After a run that succeeded: delete the earlier series in ``folder`` (its files
+        only; the folder too once empty). Returns how many files were removed."""
+        aside = os.path.join(self.directory, folder)
+        names = self._earlier_series(aside)
+        for name in names:
+            os.remove(os.path.join(aside, name))
+        try:
+            os.rmdir(aside)
+        except OSError:  # absent, or holding files of the user's
+            pass
+        return len(names)
 
     def write_walls(self, meshes: Sequence[tuple], name: str = "walls", tables: Sequence[int] | None = None) -> str:
         """Write wall surfaces once, as ``{directory}/{name}.vtu``; returns the path.
@@ -826,6 +861,10 @@ if __name__ == "__main__":  # pragma: no cover
     _benchmark()
 
 
+# the subfolder an earlier run's series waits in while a run writes its own (kept if it fails)
+PREVIOUS_SERIES = "previous_series"
+
+
 class SimulationFrames:
     """The ``on_frame`` callback of :meth:`minidem.engine.simulation.Simulation.run` that writes a
     ParaView series: ``particles.pvd`` (+ ``particles_contacts.pvd`` when the scene asks
@@ -854,8 +893,13 @@ class SimulationFrames:
 
     def __call__(self, time_s, state) -> None:
         if self.frames == 0 and not self.continues:
-            self.writer.remove_earlier_frames()
+            self.writer.set_aside_earlier_frames(PREVIOUS_SERIES)
         self.write(time_s, state)
+
+    def succeeded(self) -> None:
+        """The run succeeded and its files are written: an earlier run's series set aside
+        (PREVIOUS_SERIES) is replaced by this one's."""
+        self.writer.discard_set_aside(PREVIOUS_SERIES)
 
     def write(self, time_s, state) -> None:
         pairs, normal_force = state.contact_pairs() if self.scene.vtk_contacts else (None, None)
