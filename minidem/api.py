@@ -16,6 +16,8 @@ from __future__ import annotations
 import copy
 import json
 import math
+import numbers
+import os
 import time
 import warnings
 from pathlib import Path
@@ -55,7 +57,11 @@ def _toml_text(value) -> str:
         return "[" + ", ".join(_toml_text(v) for v in value) + "]"
     if isinstance(value, dict):
         return "{" + ", ".join(f"{json.dumps(str(k))} = {_toml_text(v)}" for k, v in value.items()) + "}"
-    return repr(value)
+    if isinstance(value, (int, float)):
+        return repr(value)
+    # None became the string 'None' in the validator's message (a robustness review)
+    raise TypeError(f"{value!r:.60} ({type(value).__name__}) is no TOML value: give a number, a string, true or "
+                    "false, a list or a dict")
 
 
 def _override_texts(overrides) -> list[str]:
@@ -65,7 +71,13 @@ def _override_texts(overrides) -> list[str]:
     if isinstance(overrides, str):
         return [overrides]
     if isinstance(overrides, Mapping):
-        return [f"{key}={_toml_text(value)}" for key, value in overrides.items()]
+        texts = []
+        for key, value in overrides.items():
+            try:
+                texts.append(f"{key}={_toml_text(value)}")
+            except TypeError as exc:
+                raise TypeError(f"overrides: {key}: {exc}") from None
+        return texts
     if isinstance(overrides, (list, tuple)) and all(isinstance(text, str) for text in overrides):
         return list(overrides)
     raise TypeError(f"overrides: expected a dict of dotted keys ({{\"impact.angle_deg\": 10.0}}) or a list of "
@@ -142,7 +154,14 @@ class Scenario:
         Values are checked by the scenario validator (``particles[K].radius: must be > 0 m``);
         only the shapes are checked here.
         """
-        position = np.asarray(position, dtype=np.float64)
+        def as_numbers(name, value, dtype=np.float64):
+            try:
+                return np.asarray(value, dtype=dtype)
+            except (TypeError, ValueError) as exc:  # "abc", a complex number: numpy's own error named no argument
+                raise ScenarioError(f"{self.source}: particles({name}=...): expected numbers, got "
+                                    f"{value!r:.60} ({exc})") from None
+
+        position = as_numbers("position", position)
         if position.ndim != 2 or position.shape[1] != 3:
             raise ScenarioError(f"{self.source}: particles(position=...): expected an array of shape (N, 3), "
                                 f"got shape {position.shape}")
@@ -151,7 +170,7 @@ class Scenario:
         def per_particle(name, value, shape):
             if value is None:
                 return None
-            array = np.asarray(value, dtype=object if name == "material" else np.float64)
+            array = as_numbers(name, value, object if name == "material" else np.float64)
             if array.ndim == 0:
                 return np.broadcast_to(array, (n, *shape))
             if array.shape != (n, *shape):
@@ -338,6 +357,8 @@ def run(scenario, overrides=None, out: str | Path | None = None, progress: bool 
     from minidem.results.output import set_aside_earlier_results, write_run_files
     from minidem.scene import scenario as scenario_module
 
+    if out is not None and not isinstance(out, (str, os.PathLike)):
+        raise TypeError(f"out: expected a directory path (str or os.PathLike), got {type(out).__name__} {out!r:.40}")
     given = _scenario(scenario, overrides)
     if case is not None:
         given = _one_case(given, case, overrides)
@@ -456,6 +477,9 @@ def sweep(scenario, cases: Mapping[str, Sequence] | None = None, overrides=None,
     if "sweep" not in data:
         raise ScenarioError(f"{given.source}: no [sweep] table and no cases given: pass cases={{\"impact.angle_deg\": "
                             "[...], ...}} or use minidem.run() for a single run")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, numbers.Integral)):
+        raise TypeError(f"workers: expected a whole number of processes (0: one per CPU), got "
+                        f"{type(workers).__name__} {workers!r:.40}")
     if workers is not None and workers < 0:
         raise ScenarioError(f"workers={workers}: must be >= 0 (0: one per CPU)")
     plan = sweep_module.plan(data, given.source)

@@ -106,6 +106,19 @@ def test_a_bad_key_is_named_and_caught_as_minidem_error(tmp_path):
         minidem.Scenario().material("g", young=1.0, poisson_ratio=0.3, density=2500.0).scene()
     with pytest.raises(TypeError, match=r"overrides: expected a dict of dotted keys .* got float 10\.0"):
         minidem.run(OBLIQUE, 10.0)
+    # arguments of the wrong type name the argument (a robustness review, 2026-11-28: numpy's
+    # "could not convert string to float", "expected str, bytes or os.PathLike", a None
+    # validated as the string 'None', "'<' not supported")
+    with pytest.raises(minidem.ScenarioError, match=r"particles\(position=\.\.\.\): expected numbers, got 'abc'"):
+        minidem.Scenario().particles("abc", 0.01, "glass")
+    with pytest.raises(minidem.ScenarioError, match=r"particles\(position=\.\.\.\): expected numbers"):
+        minidem.Scenario().particles([[0.0, 0.0, 1j]], 0.01, "glass")
+    with pytest.raises(TypeError, match=r"^out: expected a directory path"):
+        minidem.run(OBLIQUE, out=5)
+    with pytest.raises(TypeError, match=r"^overrides: impact.angle_deg: None \(NoneType\) is no TOML value"):
+        minidem.run(OBLIQUE, {"impact.angle_deg": None})
+    with pytest.raises(TypeError, match=r"^workers: expected a whole number of processes"):
+        minidem.sweep(OBLIQUE, cases={"impact.angle_deg": [1.0]}, workers="2")
     for error in (minidem.ScenarioError, minidem.LawError, minidem.RunFailure, minidem.OutputError):
         assert issubclass(error, minidem.MinidemError)
     assert issubclass(minidem.OutputError, OSError)  # code catching OSError for a full disk still does
