@@ -387,11 +387,13 @@ def test_guide_part_plugin_installs_and_combines_with_builtin_parts(tmp_path):
 # long) on a plane under gravity, Hertz + Tsuji (e = 0.5) + Mindlin (mu = 0.5, no slip
 # here), released at zero overlap. Fn averages m g from the first bounce on (the vertical
 # momentum comes back to zero), so a couple linear in Fn acts on average as with m g.
-ROLLING_SCENE = """
+BEADS = """
 [materials.m]
 youngs_modulus = 1e8
 poisson_ratio = 0.3
 density = 2500.0
+"""
+ROLLING_SCENE = BEADS + """
 
 [contact]
 {law}
@@ -720,11 +722,7 @@ def test_verify_skips_the_sliding_limit_with_rolling_resistance_and_says_why():
     assert "assume no rolling or twisting resistance" in check.criterion
 
 
-STACKED_SPHERES = """
-[materials.m]
-youngs_modulus = 1e8
-poisson_ratio = 0.3
-density = 2500.0
+STACKED_SPHERES = BEADS + """
 
 [contact]
 {law}
