@@ -112,7 +112,7 @@ def command_run(args) -> int:
     resume_from = checkpoint.load_for_resume(sim, directory) if args.resume else None
     if not args.quiet:
         print(f"minidem: {scene.source}: law '{sim.law.name}' ({sim.entry.packages}), "
-              f"{scene.n_particles} particle(s), {scene.wall_point.shape[0]} wall(s)")
+              f"{scene.n_particles} particle(s), {_wall_count(scene.walls)} wall(s)")
         print(f"  time step {sim.dt:.4g} s ({sim.dt_reason})")
         chosen = scene.raw.get("run", {}).get("integrator", "auto") == "auto"
         print(f"  integrator {scene.integrator}" + (" (run.integrator = \"auto\")" if chosen else ""))
@@ -172,6 +172,15 @@ def command_run(args) -> int:
               f"{rate * scene.n_particles:.4g} particle-steps/s on {result.threads} thread(s)"
               + (f" (resumed at step {resume_from[1]['step']})" if resume_from is not None else ""))
     return EXIT_OK
+
+
+def _wall_count(walls) -> int:
+    """The walls a scenario gave: its [[walls]] tables (a box is one, a mesh is one, not
+    its planes or triangles), and a plane of no table (the [impact] wall)."""
+    import numpy as np
+
+    tables = np.concatenate([walls.plane_table, walls.cylinder_table, walls.triangle_table])
+    return len(set(tables[tables >= 0].tolist())) + int(np.count_nonzero(walls.plane_table < 0))
 
 
 def _say_set_aside(directory: Path, started: float) -> None:

@@ -203,6 +203,8 @@ FAKE_PLUGINS = {
             registry.add(law("fake_short", force=short_force))
             registry.add(law("fake_old_couple", force=old_couple_force, couples=True))
             registry.add(law("fake_no_inertia_couple", force=no_inertia_couple_force, couples=True))
+            registry.add(law("fake_undeclared_couple", force=couple_force))
+            registry.add(law("fake_declared_plain", force=list_force, couples=True))
             registry.add(law("fake_four_value_couple", force=four_value_couple_force, couples=True))
             registry.add(law("fake_couple", force=couple_force, couples=True))
             registry.add(law("fake_swapped_couple", force=swapped_couple_force, couples=True))
@@ -368,6 +370,10 @@ def test_a_plugin_alias_never_takes_a_builtin_name_and_aliases_are_checked(fake_
     # a compiled function bound under another name is imported by that name
     assert declarations.force_import_name(registry.get("fake_bound")) == ("fake_names", "bound_force")
     assert "takes 4 arguments" in broken["fake_short"].reason and "tangential_velocity" in broken["fake_short"].reason
+    # a couples flag that does not match the function says which it is (a plugin author's
+    # review, 2026-11-28: "takes 13 arguments; the engine calls it with 9" said neither)
+    assert "(the arguments of a law with couples=True: declare couples=True)" in broken["fake_undeclared_couple"].reason
+    assert "couples=True is declared, which adds rotation_increment" in broken["fake_declared_plain"].reason
     # a couple law written for the earlier contract (relative_spin, normal, dt): the same
     # count, so it is recognised by its names and told what the engine passes now
     assert "now passes (rotation_increment, relative_spin, normal, rolling_inertia)" in broken["fake_old_couple"].reason

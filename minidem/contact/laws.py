@@ -27,6 +27,7 @@ from minidem.contact import hookspecs
 from minidem.contact.declarations import (
     COUPLE_ARGUMENTS,
     ENERGY_ROLES,
+    FORCE_ARGUMENTS,
     FRICTION_LOAD_ARGUMENTS,
     KINDS,
     PART_ARGUMENTS,
@@ -533,8 +534,16 @@ def _compiled_function_problem(function, field: str, arguments: tuple[str, ...])
     if earlier:
         return earlier
     if len(given) != len(arguments):
+        hint = ""
+        if field == "force" and arguments[:len(FORCE_ARGUMENTS)] == FORCE_ARGUMENTS:
+            # the count of the other contract: the couples flag, not the function, is wrong
+            other = FORCE_ARGUMENTS if len(arguments) > len(FORCE_ARGUMENTS) else FORCE_ARGUMENTS + COUPLE_ARGUMENTS
+            if len(given) == len(other):
+                hint = (" (the arguments of a law with couples=True: declare couples=True)" if len(other) >
+                        len(FORCE_ARGUMENTS) else " (the arguments of a law without couples: couples=True is "
+                        f"declared, which adds {', '.join(COUPLE_ARGUMENTS)})")
         return (f"'{field}' ({func.__qualname__}) takes {len(given)} arguments; the engine calls it with "
-                f"{len(arguments)}: ({', '.join(arguments)})")
+                f"{len(arguments)}: ({', '.join(arguments)}){hint}")
     # any names will do, but one of the engine's at another place is a swap (two vectors
     # of the same type, an increment and a velocity, compile either way and run wrong)
     for at, (parameter, expected) in enumerate(zip(given, arguments), start=1):

@@ -116,11 +116,18 @@ class Guard:
         budget = self.base_budget + gravity_work_max
         if kinetic > ENERGY_FACTOR * budget:
             allowed = math.sqrt(2.0 * budget / self.mass[top])
+            speed = float(np.linalg.norm(state.velocity[top]))
+            spin = float(np.linalg.norm(state.angular_velocity[top]))
+            rotational = 0.5 * float(self.inertia[top]) * spin * spin
+            own = 0.5 * float(self.mass[top]) * speed * speed + rotational
+            # a couple gone wrong shows in the spin, not the speed (a plugin author's review)
+            spinning = (f" and spins at {spin:.3g} rad/s ({100.0 * rotational / own:.3g} % of its kinetic energy "
+                        f"{own:.3g} J rotational)" if own > 0.0 and rotational > 0.01 * own else "")
             return Fault("energy", top, (
                 f"the kinetic energy {kinetic:.3g} J is {kinetic / budget:.3g} times the scene's energy budget "
                 f"{budget:.3g} J (initial kinetic energy + work of gravity so far"
                 + (f" + what adhesion can supply, {self.supply_budget:.3g} J" if self.supply_budget else
-                   "; passive contacts cannot add energy") + f"); particle {name_of(top)} moves at {float(np.linalg.norm(state.velocity[top])):.3g} m/s where "
+                   "; passive contacts cannot add energy") + f"); particle {name_of(top)} moves at {speed:.3g} m/s{spinning}, where "
                 f"the budget allows at most {allowed:.3g} m/s")), gravity_work_max
         reach = (self.extent + REACH_FACTOR * math.sqrt(2.0 * budget / self.lightest) * time
                  + 0.5 * self.gravity_magnitude * time * time)

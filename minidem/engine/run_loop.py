@@ -466,10 +466,14 @@ class RunLoop:
         """A fault the kernel stopped for (a non-finite force, a sphere through a wall)."""
         status, sim = self.status, self.sim
         if status[0] != kernel.OK:
-            self.fail(sim._fault_message(status, steps),
-                      None if status[0] != kernel.NON_FINITE_FORCE else
-                      "A law's force must be finite at every overlap >= 0 and speed; if this one is, the time "
-                      f"step may be too large: {sim.suggested_time_step()}")
+            advice = None
+            if status[0] == kernel.NON_FINITE_FORCE:
+                advice = ("A law's force must be finite at every overlap >= 0 and speed; if this one is, the time "
+                          f"step may be too large: {sim.suggested_time_step()}")
+            elif status[0] == kernel.TUNNELLED and sim.deepest_overlap[0] > 1.0:
+                advice = ("no time step helps then: a stiffer material, a slower impact or weaker gravity "
+                          f"(if it is the time step, {sim.suggested_time_step()})")
+            self.fail(sim._fault_message(status, steps), advice)
 
     # -- the loop ----------------------------------------------------------------
     def next_chunk(self):

@@ -488,19 +488,18 @@ class Simulation:
         # derived for it); symplectic Euler closes with no kick: nothing predicted
         predicted = self.end_velocity and integrate.OPENING_KICK[self.scene.integrator] == 0.5
         best, why, damped = math.inf, "no contact possible", False
-        # the deepest overlap over the sphere's radius, for derived.check_simulation: (ratio,
-        # overlap m, radius m, contact kind, what sets it)
+        # the deepest overlap over the sphere's radius, for derived.check_simulation and a
+        # sphere through a wall (_fault_message): (ratio, overlap m, radius m, kind, cause)
         self.deepest_overlap = (0.0, 0.0, 0.0, "", "")
         for pair, named, r, m, kind in self.contact_kinds():
             k_hertz = 4.0 / 3.0 * pair.effective_modulus * math.sqrt(r)
             impact = (15.0 * m * speed**2 / (16.0 * pair.effective_modulus * math.sqrt(r))) ** 0.4
             weight = (m * gravity / k_hertz) ** (2.0 / 3.0)
             overlap = max(impact, weight)
-            radius = r if kind == "sphere-wall" else 2.0 * r  # a pair's r is R* = R/2
-            if overlap / radius > self.deepest_overlap[0]:
-                cause = (f"a normal impact speed of {speed:.4g} m/s" if impact >= weight
-                         else f"the sphere's weight under gravity of {gravity:.4g} m/s^2")
-                self.deepest_overlap = (overlap / radius, overlap, radius, kind, cause)
+            radius = r if kind == "sphere-wall" else 2.0 * r  # a pair's r is R* = R/2 of the smaller sphere
+            deepest = self._law_overlap(pair, named, r, m, speed, gravity, radius)
+            if deepest is not None and deepest[0] / radius > self.deepest_overlap[0]:
+                self.deepest_overlap = (deepest[0] / radius, deepest[0], radius, kind, deepest[1])
             normal, tangential, zeta = laws.law_stiffness(self.law, pair, named, r, m, overlap)
             # name the overlap only when the stiffness depends on it (not for a linear spring)
             depends = laws.law_stiffness(self.law, pair, named, r, m, 2.0 * overlap)[:2] != (normal, tangential)
@@ -520,6 +519,29 @@ class Simulation:
                               if damping else "")
                            + (f", stiffness at overlap {overlap:.3g} m" if depends else ""))
         return best, why, damped
+
+    def _law_overlap(self, pair, named, r, m, speed, gravity, radius):
+        """The overlap (m) at which the law's elastic force, undamped, has stored a normal
+        impact's kinetic energy at ``speed`` or carries the sphere's weight, whichever is
+        deeper, and which of the two: integrated from the law's tangent stiffness
+        (``laws.law_stiffness``: a linear spring's kn, Hertz's 2 E* a, a plugin's own) up to
+        20 radii (infinity when deeper still). An upper bound: a dashpot stops the sphere
+        sooner. None when the law's stiffness cannot be evaluated that deep."""
+        energy, load = 0.5 * m * speed**2, m * gravity
+        overlaps = radius * np.logspace(-8.0, math.log10(20.0), 400)
+        try:
+            stiffness = np.array([laws.law_stiffness(self.law, pair, named, r, m, float(d))[0] for d in overlaps])
+        except (laws.LawError, ArithmeticError, ValueError):
+            return None
+        steps = np.diff(overlaps, prepend=0.0)
+        force = np.cumsum(0.5 * (stiffness + np.concatenate(([stiffness[0]], stiffness[:-1]))) * steps)
+        stored = np.cumsum(0.5 * (force + np.concatenate(([0.0], force[:-1]))) * steps)
+        by_energy, by_load = np.searchsorted(stored, energy), np.searchsorted(force, load)
+        if max(by_energy, by_load) >= len(overlaps):
+            return math.inf, f"a normal impact speed of {speed:.4g} m/s"
+        if by_energy >= by_load:
+            return float(overlaps[by_energy]), f"a normal impact speed of {speed:.4g} m/s"
+        return float(overlaps[by_load]), f"the sphere's weight under gravity of {gravity:.4g} m/s^2"
 
     def _choose_time_step(self) -> tuple[float, str]:
         scene = self.scene
@@ -823,8 +845,13 @@ class Simulation:
         else:
             what = f"partner {partner} (kind {kind})"
         if code == kernel.NON_FINITE_FORCE:
-            return (f"law '{self.law.name}' ({self.entry.distribution}) returned a non-finite force {when} for "
-                    f"particle {particle} against {what}")
+            return (f"law '{self.law.name}' ({self.entry.distribution}) returned a non-finite force"
+                    + (" or couple" if self.law.couples else "") + f" {when} for particle {particle} against {what}")
         if code == kernel.TUNNELLED:
+            ratio, overlap, radius, kind, cause = self.deepest_overlap
+            if ratio > 1.0:  # the law itself lets it through (derived.check_simulation warned)
+                depth = f"about {overlap:.3g} m" if math.isfinite(overlap) else "more than 20 radii"
+                return (f"particle {particle} passed through {what} {when}: its contacts may need an overlap of "
+                        f"{depth} ({cause}), more than its radius {radius:.3g} m")
             return f"particle {particle} passed through {what} {when}: the time step is too large"
         return f"run stopped with status {code} {when}"

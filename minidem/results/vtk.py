@@ -715,27 +715,40 @@ class VTKSeriesWriter:
         exists already (left by a run that failed: it holds the series before it), the
         series here, that failed run's, is deleted instead. Returns the folder's path
         when something was moved."""
+        from minidem.files import output_error
+
         names = self._earlier_series(self.directory)
         aside = os.path.join(self.directory, folder)
         if not names:
             return None
-        if os.path.isdir(aside):
-            for name in names:
-                if name.endswith(".vtu"):
-                    os.remove(os.path.join(self.directory, name))
-            return None
-        os.makedirs(aside)
-        for name in names:
-            os.replace(os.path.join(self.directory, name), os.path.join(aside, name))
+        try:
+            if self._earlier_series(aside):  # a series set aside already (by a run that then failed)
+                for name in names:
+                    if name.endswith(".vtu"):
+                        os.remove(os.path.join(self.directory, name))
+                return None
+            os.makedirs(aside, exist_ok=True)
+            # the frames first, the collections last: a collection never lists a frame not there
+            for name in sorted(names, key=lambda n: n.endswith(".pvd")):
+                os.replace(os.path.join(self.directory, name), os.path.join(aside, name))
+        except OSError as exc:  # a file named like the folder, permissions, a full disk
+            raise output_error(aside, exc) from None
         return aside
 
     def discard_set_aside(self, folder: str) -> int:
         """After a run that succeeded: delete the earlier series in ``folder`` (its files
         only; the folder too once empty). Returns how many files were removed."""
+        import warnings
+
         aside = os.path.join(self.directory, folder)
         names = self._earlier_series(aside)
-        for name in names:
-            os.remove(os.path.join(aside, name))
+        try:
+            # the collections last: after a failure they still list what is left, for the next run
+            for name in sorted(names, key=lambda n: n.endswith(".pvd")):
+                os.remove(os.path.join(aside, name))
+        except OSError as exc:  # the run itself succeeded: say so, do not fail it
+            warnings.warn(f"could not remove the earlier VTK series in {aside}: {exc.strerror or exc}", stacklevel=2)
+            return 0
         try:
             os.rmdir(aside)
         except OSError:  # absent, or holding files of the user's
