@@ -601,3 +601,22 @@ def test_an_earlier_trace_is_not_left_beside_a_later_runs_summary(tmp_path):
     assert later.returncode == 0 and "trace.csv is an earlier run's" in later.stderr, later.stderr
     assert not (tmp_path / "trace.csv").exists() and (tmp_path / "trace.previous.csv").read_bytes() == traced
     assert minidem.open_results(tmp_path).trace is None
+
+
+def test_a_file_in_the_way_of_the_set_aside_series_stops_the_run_naming_it(tmp_path):
+    # a file named previous_series ended the run as "internal error: FileExistsError"; a
+    # folder of that name the user made (no series in it) took the place of a set-aside
+    # series, and the earlier run's frames were deleted (a review, 2026-11-28)
+    small = [arg for o in SMALL_SETTLE + ["run.end_time=0.01", "output.vtk=true"] for arg in ("--set", o)]
+    assert run_cli("run", SETTLE, "--out", tmp_path, "--quiet", *small).returncode == 0
+    (tmp_path / "previous_series").write_text("mine")
+    blocked = run_cli("run", SETTLE, "--out", tmp_path, "--quiet", *small)
+    assert blocked.returncode == 1 and "internal error" not in blocked.stderr, blocked.stderr
+    assert f"cannot write {tmp_path / 'previous_series'}: File exists" in blocked.stderr, blocked.stderr
+    (tmp_path / "previous_series").unlink()
+    (tmp_path / "previous_series").mkdir()
+    (tmp_path / "previous_series" / "notes.txt").write_text("mine")
+    failed = run_cli("run", SETTLE, "--out", tmp_path, "--quiet", *small, "--set", "run.dt=1e-3",
+                     "--set", "run.allow_unstable_dt=true")
+    assert failed.returncode == 1 and (tmp_path / "previous_series" / "particles.pvd").exists(), failed.stderr
+    assert (tmp_path / "previous_series" / "notes.txt").read_text() == "mine"
