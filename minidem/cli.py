@@ -11,6 +11,7 @@ import argparse
 import functools
 import json
 import os
+import shlex
 import signal
 import sys
 import time
@@ -140,8 +141,12 @@ def command_run(args) -> int:
         except KeyboardInterrupt:
             if sim.interrupted_at is not None:
                 time_s, path = sim.interrupted_at
-                print(f"minidem: stopped at t = {time_s:.6g} s; checkpoint {path}: continue with "
-                      f"`minidem run {args.file} --resume` (and the same --set/--out)", file=sys.stderr)
+                # the whole command, --set values and --out included: a resume must repeat them
+                again = " ".join(shlex.quote(str(word)) for word in (
+                    "minidem", "run", args.file, *(w for value in args.set for w in ("--set", value)),
+                    *(("--out", args.out) if args.out is not None else ()), "--resume"))
+                print(f"minidem: stopped at t = {time_s:.6g} s; checkpoint {path}: continue with `{again}`",
+                      file=sys.stderr)
             raise
         finally:
             signal.signal(signal.SIGTERM, previous_sigterm)
@@ -164,6 +169,7 @@ def command_run(args) -> int:
         print(f"  wrote {directory / 'summary.json'}, {directory / checkpoint.FINAL_STATE}"
               + (f", {directory / 'trace.csv'}" if result.trace is not None else "")
               + (f", {frames.pvd_path} ({frames.frames} frames)" if frames is not None else "")
+              + (f", {frames.writer.contacts_pvd_path}" if frames is not None and scene.vtk_contacts else "")
               + (f", {frames.walls_path}" if frames is not None and frames.walls_path is not None else ""))
         # a resumed run timed only the steps after its checkpoint
         steps_here = result.steps - (resume_from[1]["step"] if resume_from is not None else 0)
