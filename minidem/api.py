@@ -318,7 +318,9 @@ class Result:
         return cloud
 
     def walls_pyvista(self):
-        """The walls as one ``pyvista.PolyData`` (planes as the rectangles ParaView shows), or None."""
+        """The walls as one ``pyvista.PolyData`` (planes as the rectangles ParaView shows), or
+        None; with walls.vtu's cell arrays ``wall_id`` (which wall) and ``wall_table`` (which
+        ``[[walls]]`` table of the scenario), to threshold one wall."""
         import pyvista
 
         from minidem.geometry.walls import display_meshes
@@ -329,8 +331,13 @@ class Result:
         meshes = display_meshes(scene.walls, lower, upper)
         if not meshes:
             return None
-        parts = [pyvista.PolyData(vertices, np.hstack([np.full((len(faces), 1), faces.shape[1]), faces]).ravel())
-                 for vertices, faces in meshes]
+        tables = scene.walls.display_tables()
+        parts = []
+        for wall, (vertices, faces) in enumerate(meshes):
+            part = pyvista.PolyData(vertices, np.hstack([np.full((len(faces), 1), faces.shape[1]), faces]).ravel())
+            part.cell_data["wall_id"] = np.full(len(faces), wall, dtype=np.int64)
+            part.cell_data["wall_table"] = np.full(len(faces), int(tables[wall]), dtype=np.int64)
+            parts.append(part)
         return parts[0].merge(parts[1:]) if len(parts) > 1 else parts[0]
 
     def __repr__(self) -> str:

@@ -649,3 +649,24 @@ def test_the_frame_due_at_the_end_is_the_final_state_not_one_step_before_it(tmp_
     assert len(times) == 6 and times[-1] == pytest.approx(1001 * dt, rel=1e-12), times
     assert np.diff(times) == pytest.approx(np.full(5, 0.01), abs=dt), times
 
+
+
+def test_the_python_walls_carry_the_arrays_of_walls_vtu(tmp_path):
+    # result.walls_pyvista() had no arrays, while walls.vtu has wall_id and wall_table to
+    # threshold one wall (a new user's report, 2026-11-28): the same cells, the same arrays
+    import minidem
+
+    result = minidem.run({
+        "materials": {"glass": {"youngs_modulus": 70e9, "poisson_ratio": 0.3, "density": 2650.0}},
+        "contact": {"law": "hm", "friction": 0.3, "restitution": 0.5},
+        "walls": [{"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0], "material": "glass"},
+                  {"type": "box", "lower": [-0.1, -0.1, 0.0], "upper": [0.1, 0.1, 0.3], "open_top": True,
+                   "material": "glass"}],
+        "particles": [{"position": [0.0, 0.0, 0.05], "radius": 0.01, "material": "glass"}],
+        "run": {"gravity": [0.0, 0.0, -9.81], "stop": "time", "end_time": 0.01},
+        "output": {"vtk": True}}, out=tmp_path)
+    python, written = result.walls_pyvista(), pv.read(tmp_path / "walls.vtu")
+    assert python.n_cells == written.n_cells
+    for name in ("wall_id", "wall_table"):
+        assert python.cell_data[name].tolist() == written.cell_data[name].tolist(), name
+    assert sorted(set(python.cell_data["wall_table"].tolist())) == [0, 1]  # the plane, the box
