@@ -520,6 +520,9 @@ class Simulation:
                            + (f", stiffness at overlap {overlap:.3g} m" if depends else ""))
         return best, why, damped
 
+    # how deep _law_overlap looks, in radii (deeper: infinity)
+    OVERLAP_SEARCH_RADII = 20.0
+
     def _law_overlap(self, pair, named, r, m, speed, gravity, radius):
         """The overlap (m) at which the law's elastic force, undamped, has stored a normal
         impact's kinetic energy at ``speed`` or carries the sphere's weight, whichever is
@@ -528,7 +531,7 @@ class Simulation:
         20 radii (infinity when deeper still). An upper bound: a dashpot stops the sphere
         sooner. None when the law's stiffness cannot be evaluated that deep."""
         energy, load = 0.5 * m * speed**2, m * gravity
-        overlaps = radius * np.logspace(-8.0, math.log10(20.0), 400)
+        overlaps = radius * np.logspace(-8.0, math.log10(self.OVERLAP_SEARCH_RADII), 400)
         try:
             stiffness = np.array([laws.law_stiffness(self.law, pair, named, r, m, float(d))[0] for d in overlaps])
         except (laws.LawError, ArithmeticError, ValueError):
@@ -850,7 +853,8 @@ class Simulation:
         if code == kernel.TUNNELLED:
             ratio, overlap, radius, kind, cause = self.deepest_overlap
             if ratio > 1.0:  # the law itself lets it through (derived.check_simulation warned)
-                depth = f"about {overlap:.3g} m" if math.isfinite(overlap) else "more than 20 radii"
+                depth = (f"about {overlap:.3g} m" if math.isfinite(overlap)
+                         else f"more than {self.OVERLAP_SEARCH_RADII:g} radii")
                 return (f"particle {particle} passed through {what} {when}: its contacts may need an overlap of "
                         f"{depth} ({cause}), more than its radius {radius:.3g} m")
             return f"particle {particle} passed through {what} {when}: the time step is too large"

@@ -199,7 +199,8 @@ def check_simulation(sim) -> None:
         inputs = [(key, value) for key, value in scene_inputs(scene)
                   if key.startswith(("materials.", "contact.normal_stiffness", "impact.speed", "run.gravity"))
                   or key.endswith((".radius", ".velocity"))]
-        depth = (f"up to about {overlap:.3g} m" if math.isfinite(overlap) else "more than 20 radii")
+        depth = (f"up to about {overlap:.3g} m" if math.isfinite(overlap)
+                 else f"more than {sim.OVERLAP_SEARCH_RADII:g} radii")
         text = (f"{scene.source}: a {kind} contact would overlap by {depth} (the law's elastic force, undamped, at "
                 f"{cause}), " + (f"{ratio:.3g} times" if math.isfinite(ratio) else "beyond")
                 + f" the sphere's radius {radius:.3g} m")
