@@ -580,7 +580,14 @@ def console() -> None:
     exit must do is still done first: the ``atexit`` handlers (helpers and pools of worker
     processes stopped, logging flushed) and the standard streams flushed. Every file
     minidem writes is closed before ``main`` returns. A thread still running (not a
-    daemon) is waited for, as Python would: the exit is then Python's own."""
+    daemon) is waited for, as Python would: the exit is then Python's own.
+
+    Before numpy is imported, its BLAS is held to one thread unless the user chose
+    otherwise: minidem's work is in numba's loops and its own threads, and OpenBLAS' pool
+    (a thread a core) spins for a while after numpy's import and after any call, on the
+    core that the compile helper or the second run thread needs (2.5 % of a first run's
+    CPU on a 2-core machine). The helper and sweep workers inherit it."""
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     code = main()
     import atexit
     import threading
