@@ -119,8 +119,13 @@ class _Scene:
         self.actor = self.plotter.add_mesh(
             _spheres(mesh, values), scalars="colour", clim=self.range, cmap="viridis", smooth_shading=True,
             scalar_bar_args={"title": self.title, "color": "black", "vertical": False, "width": 0.5,
-                             "height": 0.08, "position_x": 0.25, "position_y": 0.02, "fmt": "%.3g",
+                             "height": 0.1, "position_x": 0.25, "position_y": 0.01, "fmt": "%.3g",
                              "title_font_size": 14, "label_font_size": 12})
+        # the labels and the title under the bar, a few pixels apart: over it (VTK's
+        # default) the title was written across the middle label
+        bar = self.plotter.scalar_bars[self.title]
+        bar.SetTextPositionToPrecedeScalarBar()
+        bar.SetVerticalTitleSeparation(6)
         if self.text is not None:
             self.plotter.remove_actor(self.text)
         if time_s is not None:
