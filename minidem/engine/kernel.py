@@ -698,7 +698,6 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
     # all in (every earlier row is settled), and a sphere in free flight pays nothing for
     # the group (free fall, 200,000 spheres: 3.0 -> 2.7 s of kernel CPU, docs/benchmarks.md)
     touching_entries = np.empty(longest_row, dtype=np.int64)
-    ending_entries = np.empty(longest_row, dtype=np.int64)
     tile = np.empty((TILE_INPUTS, TILE_CONTACTS if PAIRS else 0))
     tile_history = np.empty((history_width, TILE_CONTACTS if PAIRS else 0))
     response = np.empty((TILE_RESPONSES, TILE_CONTACTS if PAIRS else 0))
@@ -916,10 +915,10 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
         if PAIRS:
             # Two passes over the row. Whether a listed pair touches is unpredictable
             # (about a third do), and a mispredicted branch would flush the work in
-            # flight: the first pass only collects the touching entries and those that
-            # stop touching, without a branch on either; the contacts that end are then
-            # ended, and the second pass gathers the touching ones into the tile.
-            n_touching, n_ending = 0, 0
+            # flight: the first pass only collects the touching entries, without a
+            # branch on it (and ends the rare contact that stops touching); the second
+            # gathers them into the tile.
+            n_touching = 0
             for e in range(offsets[i], offsets[i + 1]):
                 if e < 0:  # never (non_negative)
                     continue
@@ -930,16 +929,22 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                 lives_above = 0.0
                 if REACH:  # compile-time: a contact lives while the distance is below r_i + r_j + reach
                     lives_above = engaged_above(constants, pair_row[material[i], material[j]])
-                    touching = distance_squared < (reach - lives_above) * (reach - lives_above)
+                    limit_squared = (reach - lives_above) * (reach - lives_above)
                 else:
-                    touching = distance_squared < reach * reach
+                    limit_squared = reach * reach
+                touching = distance_squared < limit_squared
                 if END_VELOCITY and dt == 0.0 and not touching:  # compile-time, then the first call only
                     touching = pair_touches_at_start(dt, reach, lives_above, (dx, dy, dz), vi, velocity, j)
                 touching_entries[n_touching] = e
                 n_touching += touching
                 previous = pair_overlap[e]
-                # >=: also a contact that began touching at the start, stored at lives_above,
-                # and went no further (touches_at_start; as at a plane)
+                # The contact ends: apart now and touching at the last step (>=: also one
+                # that began touching at the start, stored at lives_above, and went no
+                # further; touches_at_start, as at a plane). Asked as one comparison of
+                # the smaller of two differences (x - y >= 0 exactly when x >= y): as two,
+                # the compiler branched first on whether the last step touched, as
+                # unpredictable as whether this one does, for every listed pair; the
+                # contact ending is rare.
                 if TRACK:  # every apart entry's overlap, for the transitions
                     if not touching:
                         overlap = reach - math.sqrt(distance_squared)
@@ -947,17 +952,10 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
                         note_transitions(stats, time, dt, overlap, previous)
                         if previous >= lives_above:
                             end_pair_contact(e, pair_history, reaction_slot, reaction, reaction_in_use)
-                else:
-                    # collected as the touching ones are, without a branch: whether the
-                    # last step touched is as unpredictable as whether this one does
-                    ending_entries[n_ending] = e
-                    n_ending += (not touching) & (previous >= lives_above)
-            for k in range(n_ending):
-                e = non_negative(ending_entries[k])
-                j = non_negative(neighbours[e])
-                dx, dy, dz = px - position[j, 0], py - position[j, 1], pz - position[j, 2]
-                pair_overlap[e] = ri + radius[j] - math.sqrt(dx * dx + dy * dy + dz * dz)
-                end_pair_contact(e, pair_history, reaction_slot, reaction, reaction_in_use)
+                elif (min(previous - lives_above, distance_squared - limit_squared) >= 0.0
+                      and not (END_VELOCITY and touching)):  # touching: at the start (dt = 0) only
+                    pair_overlap[e] = reach - math.sqrt(distance_squared)
+                    end_pair_contact(e, pair_history, reaction_slot, reaction, reaction_in_use)
             for k in range(n_touching):
                 e = non_negative(touching_entries[k])
                 j = non_negative(neighbours[e])
