@@ -528,7 +528,7 @@ class Simulation:
         impact's kinetic energy at ``speed`` or carries the sphere's weight, whichever is
         deeper, and which of the two: integrated from the law's tangent stiffness
         (``laws.law_stiffness``: a linear spring's kn, Hertz's 2 E* a, a plugin's own) up to
-        20 radii (infinity when deeper still). An upper bound: a dashpot stops the sphere
+        OVERLAP_SEARCH_RADII radii (infinity when deeper still). An upper bound: a dashpot stops the sphere
         sooner. None when the law's stiffness cannot be evaluated that deep."""
         energy, load = 0.5 * m * speed**2, m * gravity
         overlaps = radius * np.logspace(-8.0, math.log10(self.OVERLAP_SEARCH_RADII), 400)
