@@ -60,8 +60,13 @@ def print_summary(summary: dict, out=None) -> None:
         if summary["en"] is not None:  # two spheres: their collision's measures
             rows[2:2] = [("en", summary["en"], "normal restitution of the pair"),
                          ("et", summary["et"], "tangential restitution of the pair")]
-        rows += [("max overlap", summary["max_overlap_m"], "m"),
-                 ("neighbour builds", summary["neighbour_builds"], "Verlet-list builds")]
+        if summary["max_overlap_m"] is not None:
+            rows.append(("max overlap", summary["max_overlap_m"], "m, the largest of every step"))
+        else:  # the parallel loop records no peaks: the deepest contact at the run's checks
+            rows.append(("max overlap", summary["sampled_max_overlap_m"],
+                         f"m, the deepest at the run's checks, {100 * summary['sampled_max_overlap_ratio']:.3g} % "
+                         "of its contact's smaller radius"))
+        rows.append(("neighbour builds", summary["neighbour_builds"], "Verlet-list builds"))
     rows += [
         ("steps", summary["steps"], f"dt = {_format_value(summary['dt_s'])} s"),
         ("wall time", summary["wall_time_s"], "s"),

@@ -384,6 +384,32 @@ def test_turning_pair_contact_stores_its_displacement_at_second_order_in_the_ste
     assert errors[-1] < 0.01 * old_errors[-1]  # measured: 2.1e-7 against 2.1e-4 at 800 steps
 
 
+def test_spinning_pair_in_compression_converges_at_second_order_with_its_growing_lever_arms():
+    # Head-on pair, both spheres spinning at 20 rad/s about y, sticking (mu = 10): the
+    # contact point slips at (R_i - d/2) w_i + (R_j - d/2) w_j, and the arms shrink as
+    # the overlap d grows. The kernel takes the step's increment with the arms of the
+    # step's middle (a quarter of the step's overlap increment longer than at its end);
+    # taken with the end's arms, the increment is off by n x (dd/4)(w_i + w_j) dt, an
+    # error of first order. Stopped at 60 us, inside the contact (tc ~ 130 us), so that
+    # no separation straddled by a step adds its own error: the differences between
+    # halvings of the step must fall 4x. Measured 1.99 and 1.99; with the end's arms
+    # (a mutation of the kernel, 2026-11-28) 1.48 and 1.32, falling towards 1.
+    end_time = 6.0e-5
+    finals = []
+    for steps in (600, 1200, 2400, 4800):
+        data = two_spheres("hm", 0.0, {"friction": 10.0}, spin=((0.0, 20.0, 0.0), (0.0, 20.0, 0.0)),
+                           dt=end_time / steps)
+        data["run"].update(stop="time", end_time=end_time)
+        result = run(data)
+        assert result.steps == steps and result.contacts == 1  # still in contact
+        finals.append(np.concatenate([result.angular_velocity[:, 1], result.velocity[:, 2]]))
+    differences = [np.abs(finals[k] - finals[k + 1]).max() for k in range(len(finals) - 1)]
+    orders = [math.log2(differences[k] / differences[k + 1]) for k in range(len(differences) - 1)]
+    assert all(1.9 < order < 2.1 for order in orders), orders
+    # the spins did change: the tangential force was not negligible (20 -> ~19 rad/s)
+    assert abs(finals[-1][0] - 20.0) > 0.1
+
+
 # ---------------------------------------------------------------------------------
 # The settle scene (the benchmark of /work/shared/bench/settle.md)
 # ---------------------------------------------------------------------------------
@@ -956,6 +982,46 @@ def test_a_parallel_run_reports_unrecorded_contact_peaks_as_null():
     assert not result.contact_statistics and result.contacts > 0
     assert summary["max_overlap_m"] is None and summary["peak_normal_force_n"] is None
     assert summary["peak_tangential_force_n"] is None
+
+
+def _deepest_overlap_now(result):
+    """(overlap m, over the smaller radius) of the deepest contact in a run's final state,
+    by brute force: every pair and the box's five planes (x, y = 0 and 0.02 m, z = 0)."""
+    position, radius = result.position, result.scene.radius
+    separation = np.linalg.norm(position[:, None, :] - position[None, :, :], axis=2)
+    pair = radius[:, None] + radius[None, :] - separation
+    np.fill_diagonal(pair, -np.inf)
+    i, j = np.unravel_index(np.argmax(pair), pair.shape)
+    deepest, ratio = pair[i, j], pair[i, j] / min(radius[i], radius[j])
+    walls = np.stack([radius - position[:, 0], radius - position[:, 1], radius - position[:, 2],
+                      radius - (0.02 - position[:, 0]), radius - (0.02 - position[:, 1])], axis=1)
+    k = np.unravel_index(np.argmax(walls), walls.shape)[0]
+    if walls.max() > deepest:
+        deepest, ratio = walls.max(), walls.max() / radius[k]
+    return deepest, ratio
+
+
+def test_a_pile_reports_its_deepest_overlap_at_the_checks_within_the_every_step_maximum():
+    # A pile the parallel loop runs records no every-step peak (above): its summary gives
+    # the deepest contact at the run's checks instead. The same scene run by the tracked
+    # serial loop with the drift's velocities (the same steps, bit for bit, as in
+    # test_sliding_sphere_keeps_its_wall_contact_history_across_list_builds) bounds it:
+    # the checks are a subset of the steps, so the sample is at most the every-step
+    # maximum, and the run's last step is a check, so it is at least the final state's
+    # deepest contact, found here by brute force.
+    overrides = DEEP_PILE[1:] + ["fill.0.count=100", "run.end_time=0.02"]
+    scene = scenario.load_scene("scenarios/bench/settle.toml", overrides)
+    sampled = simulation.Simulation(scene, kernel_flags={"PARALLEL": True}).run()
+    tracked = simulation.Simulation(scenario.load_scene("scenarios/bench/settle.toml", overrides),
+                                    kernel_flags={"PARALLEL": False, "END_VELOCITY": False}).run()
+    assert np.array_equal(sampled.position, tracked.position) and tracked.contact_statistics
+    summary = analysis.summary(sampled)
+    final, final_ratio = _deepest_overlap_now(sampled)
+    assert final > 0.0  # the pile has formed: the bound below is not 0 <= 0
+    assert final * (1 - 1e-12) <= summary["sampled_max_overlap_m"] <= tracked.max_overlap * (1 + 1e-12)
+    # its ratio is of the same contact: the spheres are all of one radius here
+    assert summary["sampled_max_overlap_ratio"] == pytest.approx(summary["sampled_max_overlap_m"] / 1e-3, rel=1e-12)
+    assert final_ratio == pytest.approx(final / 1e-3, rel=1e-12)
 
 
 def test_a_two_sphere_scene_reports_the_pairs_restitution():

@@ -153,6 +153,10 @@ class RunResult:
     # the most kinetic energy the contacts can supply at once (J): adhesion's bound per
     # contact times the most contacts (Simulation._prepare_reach); 0 for passive laws
     supply_budget: float = 0.0
+    # the deepest contact at the run's checks (m, and over the contact's smaller radius):
+    # a sample, where max_overlap (tracked runs only) is every step's
+    sampled_max_overlap: float = 0.0
+    sampled_max_overlap_ratio: float = 0.0
 
 class RunLoop:
     """One run of a :class:`Simulation`: the time loop in chunks of compiled steps, with
@@ -213,7 +217,10 @@ class RunLoop:
         self.loop_threads = LoopThreads(threads)
         self.block_timing = blocks.BlockTiming()
         # loop: the run loop's own state, saved with the arrays in every checkpoint
-        self.loop = {"steps": 0, "frames": 0, "last_frame_step": -1, "gravity_work_max": 0.0}
+        # deepest_overlap: (m, over the smaller radius) of the deepest contact at the
+        # checks on the grid (State.deepest_contact)
+        self.loop = {"steps": 0, "frames": 0, "last_frame_step": -1, "gravity_work_max": 0.0,
+                     "deepest_overlap": [0.0, 0.0]}
         self.energy, self.trace_chunks = [], []
         self.resume_from = resume_from
 
@@ -291,7 +298,8 @@ class RunLoop:
             sim.use_order(state, arrays.get("particle_id"))  # rows in the order they were stored
             state.restore(arrays)
             self.probe[:], self.stats[:], self.status[:] = arrays["probe"], arrays["stats"], arrays["status"]
-            loop.update({key: meta["loop"][key] for key in loop})
+            # (a checkpoint written before deepest_overlap was kept starts it afresh)
+            loop.update({key: meta["loop"][key] for key in loop if key in meta["loop"]})
             self.energy = [(float(t), float(e)) for t, e in arrays["energy"]]
             if self.scene.trace and arrays["trace"].shape[0]:
                 self.trace_chunks.append(arrays["trace"])
@@ -506,6 +514,12 @@ class RunLoop:
         # every sample_steps the kernel has taken the sample
         if steps % self.sample_steps != 0 and (steps == self.total_steps or at_frame or separating):
             self.energy.append((now, state.kinetic_energy(state.inertia)))
+        if steps % self.check_steps == 0 or steps == self.total_steps or separating:
+            # on the grid only (as the guard's record): a probe's or a checkpoint's chunk
+            # end depends on wall time, and the run's result must not
+            deepest = state.deepest_contact()
+            if deepest[0] > loop["deepest_overlap"][0]:
+                loop["deepest_overlap"] = list(deepest)
         if at_frame:
             self.on_frame(now, state)
             loop["frames"] += 1
@@ -614,6 +628,8 @@ class RunLoop:
             threads=self.loop_threads.most_used(), thread_steps=dict(self.loop_threads.steps),
             energy=np.array(self.energy), contact_statistics=not sim.parallel,
             gravity_work_max=self.loop["gravity_work_max"], supply_budget=sim.supply_budget,
+            sampled_max_overlap=self.loop["deepest_overlap"][0],
+            sampled_max_overlap_ratio=self.loop["deepest_overlap"][1],
         )
 
 

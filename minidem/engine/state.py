@@ -393,5 +393,35 @@ class State:
         return int(np.count_nonzero(self.pairs[3] > 0) + np.count_nonzero(self.planes[4] > 0)
                    + np.count_nonzero(self.cylinders[6] > 0) + np.count_nonzero(self.meshes[5] > 0))
 
+    def deepest_contact(self) -> tuple[float, float]:
+        """(overlap m, overlap over the contact's smaller radius) of the deepest contact at
+        the last step, (0, 0) if none touches: from the overlaps the kernel stores per
+        contact (an entry not touching holds its last apart overlap, at most the law's
+        lives_above, which is never above 0). A wall's radius is the sphere's. One pass
+        over each contact array, as count_contacts."""
+        radius = self.particles[8]
+        deepest, ratio = 0.0, 0.0
+        offsets, partners, overlap = self.pairs[0], self.pairs[1], self.pairs[3]
+        if overlap.size:
+            e = int(np.argmax(overlap))
+            if overlap[e] > deepest:
+                i = int(np.searchsorted(offsets, e, side="right")) - 1
+                deepest = float(overlap[e])
+                ratio = deepest / min(radius[i], radius[partners[e]])
+        # a wall contact's depth over its sphere's radius: plane and triangle entries are
+        # CSR rows by sphere, the cylinders' overlaps an (N, cylinders) array
+        cylinder_overlap = self.cylinders[6]
+        walls = ((self.planes[4], self.planes[5]), (self.meshes[5], self.meshes[2]),
+                 (cylinder_overlap.reshape(-1), None))
+        for wall_overlap, sphere_offsets in walls:
+            if wall_overlap.size:
+                k = int(np.argmax(wall_overlap))
+                if wall_overlap[k] > deepest:
+                    sphere = (k // cylinder_overlap.shape[1] if sphere_offsets is None
+                              else int(np.searchsorted(sphere_offsets, k, side="right")) - 1)
+                    deepest = float(wall_overlap[k])
+                    ratio = deepest / radius[sphere]
+        return deepest, float(ratio)
+
     def kinetic_energy(self, inertia) -> float:
         return float(integrate.kinetic_energy(self.mass, inertia, self.velocity, self.angular_velocity))

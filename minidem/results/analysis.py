@@ -214,6 +214,8 @@ def summary(result: RunResult) -> dict:
         "contacts_at_end": result.contacts,
         "kinetic_energy_j": kinetic_energy(scene.mass, scene.inertia, result.velocity, result.angular_velocity),
         "peak_kinetic_energy_j": float(result.energy[:, 1].max()) if result.energy is not None else None,
+        "sampled_max_overlap_m": result.sampled_max_overlap,
+        "sampled_max_overlap_ratio": result.sampled_max_overlap_ratio,
         "neighbour_builds": result.neighbour_builds,
         "threads": result.threads,
         "separated": result.separated,
