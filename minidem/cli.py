@@ -593,7 +593,11 @@ def console() -> None:
     core that the compile helper or the second run thread needs (2.5 % of a first run's
     CPU on a 2-core machine). The helper and sweep workers inherit it."""
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    code = main()
+    try:
+        code = main()
+    except KeyboardInterrupt:  # a Ctrl-C before main's own handlers (parsing the options, the first imports)
+        print("minidem: interrupted", file=sys.stderr)
+        code = 130
     import atexit
     import threading
 
