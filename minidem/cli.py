@@ -62,10 +62,10 @@ def print_summary(summary: dict, out=None) -> None:
                          ("et", summary["et"], "tangential restitution of the pair")]
         if summary["max_overlap_m"] is not None:
             rows.append(("max overlap", summary["max_overlap_m"], "m, the largest of every step"))
-        else:  # the parallel loop records no peaks: the deepest contact at the run's checks
-            rows.append(("max overlap", summary["sampled_max_overlap_m"],
-                         f"m, the deepest at the run's checks, {100 * summary['sampled_max_overlap_ratio']:.3g} % "
-                         "of its contact's smaller radius"))
+        else:  # the parallel loop records no peaks: samples at the run's checks
+            rows += [("max overlap, sampled", summary["sampled_max_overlap_m"], "m, the deepest at the run's checks"),
+                     ("max overlap / radius", summary["sampled_max_overlap_ratio"],
+                      "sampled, the largest over a contact's smaller radius")]
         rows.append(("neighbour builds", summary["neighbour_builds"], "Verlet-list builds"))
     rows += [
         ("steps", summary["steps"], f"dt = {_format_value(summary['dt_s'])} s"),

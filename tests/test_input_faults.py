@@ -713,3 +713,24 @@ def test_a_fill_larger_than_the_machines_memory_is_refused_before_it_is_made(cap
     err = refused(capsys, "run", path, "--out", tmp_path / "out")
     assert "fill[0]: the region's 400000 x 400000 x 400000 sites = 64,000,000,000,000,000 particles would need" in err
     assert "MemoryError" not in err
+
+
+# --------------------------------------------------------------------------------------
+# 7. a Ctrl-C while the command is still starting
+# --------------------------------------------------------------------------------------
+def test_a_ctrl_c_before_the_command_has_started_is_one_line_and_exit_130():
+    """The command's first imports are light (the contact package and numpy come later,
+    where main catches a Ctrl-C), and a Ctrl-C before main's own handlers (here: while it
+    parses its options) ends as one with them does: 'minidem: interrupted', exit 130,
+    no traceback (it was Python's traceback for the first ~80 ms of every command)."""
+    code = ("import argparse, sys\n"
+            "import minidem.cli as cli\n"
+            "assert 'minidem.contact' not in sys.modules and 'numpy' not in sys.modules, sorted(sys.modules)\n"
+            "def interrupted(*args, **kwargs):\n"
+            "    raise KeyboardInterrupt\n"
+            "argparse.ArgumentParser.parse_known_args = interrupted\n"
+            "sys.argv = ['minidem', 'run', 'scenarios/oblique.toml']\n"
+            "cli.console()\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO)
+    assert done.returncode == 130, done.stderr
+    assert done.stderr == "minidem: interrupted\n"

@@ -153,8 +153,8 @@ class RunResult:
     # the most kinetic energy the contacts can supply at once (J): adhesion's bound per
     # contact times the most contacts (Simulation._prepare_reach); 0 for passive laws
     supply_budget: float = 0.0
-    # the deepest contact at the run's checks (m, and over the contact's smaller radius):
-    # a sample, where max_overlap (tracked runs only) is every step's
+    # at the run's checks: the deepest overlap (m) and the largest overlap over a contact's
+    # smaller radius, samples where max_overlap (tracked runs only) is every step's
     sampled_max_overlap: float = 0.0
     sampled_max_overlap_ratio: float = 0.0
 
@@ -217,8 +217,8 @@ class RunLoop:
         self.loop_threads = LoopThreads(threads)
         self.block_timing = blocks.BlockTiming()
         # loop: the run loop's own state, saved with the arrays in every checkpoint
-        # deepest_overlap: (m, over the smaller radius) of the deepest contact at the
-        # checks on the grid (State.deepest_contact)
+        # deepest_overlap: the deepest overlap (m) and the largest over a contact's smaller
+        # radius at the checks on the grid (State.deepest_contact)
         self.loop = {"steps": 0, "frames": 0, "last_frame_step": -1, "gravity_work_max": 0.0,
                      "deepest_overlap": [0.0, 0.0]}
         self.energy, self.trace_chunks = [], []
@@ -298,8 +298,10 @@ class RunLoop:
             sim.use_order(state, arrays.get("particle_id"))  # rows in the order they were stored
             state.restore(arrays)
             self.probe[:], self.stats[:], self.status[:] = arrays["probe"], arrays["stats"], arrays["status"]
-            # (a checkpoint written before deepest_overlap was kept starts it afresh)
-            loop.update({key: meta["loop"][key] for key in loop if key in meta["loop"]})
+            saved = dict(meta["loop"])
+            # a checkpoint written before deepest_overlap was kept: the samples start afresh
+            saved.setdefault("deepest_overlap", [0.0, 0.0])
+            loop.update({key: saved[key] for key in loop})
             self.energy = [(float(t), float(e)) for t, e in arrays["energy"]]
             if self.scene.trace and arrays["trace"].shape[0]:
                 self.trace_chunks.append(arrays["trace"])
@@ -517,9 +519,9 @@ class RunLoop:
         if steps % self.check_steps == 0 or steps == self.total_steps or separating:
             # on the grid only (as the guard's record): a probe's or a checkpoint's chunk
             # end depends on wall time, and the run's result must not
-            deepest = state.deepest_contact()
-            if deepest[0] > loop["deepest_overlap"][0]:
-                loop["deepest_overlap"] = list(deepest)
+            # each its own maximum (a new list, never changed in place: snapshots share it)
+            loop["deepest_overlap"] = [max(now, before) for now, before in
+                                       zip(state.deepest_contact(), loop["deepest_overlap"])]
         if at_frame:
             self.on_frame(now, state)
             loop["frames"] += 1

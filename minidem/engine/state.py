@@ -94,6 +94,11 @@ def full_arrays(arrays: dict) -> dict[str, np.ndarray]:
     return out
 
 
+def _rows(offsets: np.ndarray, entries: np.ndarray) -> np.ndarray:
+    """The row of each of ``entries`` of a CSR list (offsets (N + 1,))."""
+    return np.searchsorted(offsets, entries, side="right") - 1
+
+
 def pair_index_type(n_entries: int, n_particles: int):
     """The integer type of the pair list's partners and reaction slots: int32 below 2^31
     entries and particles (4 bytes an entry saved twice, and once more in the last good
@@ -394,34 +399,38 @@ class State:
                    + np.count_nonzero(self.cylinders[6] > 0) + np.count_nonzero(self.meshes[5] > 0))
 
     def deepest_contact(self) -> tuple[float, float]:
-        """(overlap m, overlap over the contact's smaller radius) of the deepest contact at
-        the last step, (0, 0) if none touches: from the overlaps the kernel stores per
-        contact (an entry not touching holds its last apart overlap, at most the law's
-        lives_above, which is never above 0). A wall's radius is the sphere's. One pass
-        over each contact array, as count_contacts."""
+        """(the deepest overlap (m), the largest overlap over its contact's smaller radius)
+        at the last step, each the maximum over every contact (in a scene of unlike spheres
+        they may be two contacts), (0, 0) if none touches. From the overlaps the kernel
+        stores per contact: an entry not touching holds its last apart overlap, at most the
+        law's lives_above, which is never above 0. A wall contact's radius is its sphere's.
+
+        One pass over each contact array, as count_contacts; the radii are looked up only
+        for the contacts that can hold the largest ratio: a contact's ratio is at most its
+        overlap over the smallest radius, and the largest is at least the deepest overlap
+        over the largest radius, so only overlaps of deepest x smallest / largest or more
+        are candidates (in a scene of one radius, the deepest contacts alone)."""
         radius = self.particles[8]
-        deepest, ratio = 0.0, 0.0
-        offsets, partners, overlap = self.pairs[0], self.pairs[1], self.pairs[3]
-        if overlap.size:
-            e = int(np.argmax(overlap))
-            if overlap[e] > deepest:
-                i = int(np.searchsorted(offsets, e, side="right")) - 1
-                deepest = float(overlap[e])
-                ratio = deepest / min(radius[i], radius[partners[e]])
-        # a wall contact's depth over its sphere's radius: plane and triangle entries are
-        # CSR rows by sphere, the cylinders' overlaps an (N, cylinders) array
         cylinder_overlap = self.cylinders[6]
-        walls = ((self.planes[4], self.planes[5]), (self.meshes[5], self.meshes[2]),
-                 (cylinder_overlap.reshape(-1), None))
-        for wall_overlap, sphere_offsets in walls:
-            if wall_overlap.size:
-                k = int(np.argmax(wall_overlap))
-                if wall_overlap[k] > deepest:
-                    sphere = (k // cylinder_overlap.shape[1] if sphere_offsets is None
-                              else int(np.searchsorted(sphere_offsets, k, side="right")) - 1)
-                    deepest = float(wall_overlap[k])
-                    ratio = deepest / radius[sphere]
-        return deepest, float(ratio)
+        # each kind of contact: its overlaps and the radius of the smaller sphere of each entry
+        pair_offsets, partners = self.pairs[0], self.pairs[1]
+        kinds = (
+            (self.pairs[3], lambda e: np.minimum(radius[_rows(pair_offsets, e)], radius[partners[e]])),
+            (self.planes[4], lambda k: radius[_rows(self.planes[5], k)]),
+            (self.meshes[5], lambda k: radius[_rows(self.meshes[2], k)]),
+            (cylinder_overlap.reshape(-1), lambda k: radius[k // max(1, cylinder_overlap.shape[1])]),
+        )
+        deepest = max([0.0] + [float(overlap.max()) for overlap, _ in kinds if overlap.size])
+        if deepest <= 0.0:
+            return 0.0, 0.0
+        threshold = deepest * float(radius.min()) / float(radius.max())
+        ratio = 0.0
+        for overlap, smaller_radius in kinds:
+            if overlap.size:
+                candidates = np.flatnonzero(overlap >= threshold)
+                if candidates.size:
+                    ratio = max(ratio, float((overlap[candidates] / smaller_radius(candidates)).max()))
+        return deepest, ratio
 
     def kinetic_energy(self, inertia) -> float:
         return float(integrate.kinetic_energy(self.mass, inertia, self.velocity, self.angular_velocity))
