@@ -355,8 +355,9 @@ def section(results: dict, command: str, stamp, heading: str = "## Multi-particl
         "Peak memory, split: a fresh interpreter is "
         + ", ".join(f"{k} {v:.0f} MiB" for k, v in base.items())
         + " (numba's first compiled call, even one loaded from the cache, sets up its typing and code-"
-        "generation contexts and LLVM). " + fixed_against_liggghts(cases, base.get("first compiled call"))
-        + " " + memory_growth(cases),
+        "generation contexts and LLVM)."
+        + "".join(" " + text for text in (fixed_against_liggghts(cases, base.get("first compiled call")),
+                                          memory_growth(cases)) if text),
         "",
         per_particle_memory(cases, base.get("first compiled call", float("nan"))),
         "",
