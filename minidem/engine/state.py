@@ -94,11 +94,6 @@ def full_arrays(arrays: dict) -> dict[str, np.ndarray]:
     return out
 
 
-def _rows(offsets: np.ndarray, entries: np.ndarray) -> np.ndarray:
-    """The row of each of ``entries`` of a CSR list (offsets (N + 1,))."""
-    return np.searchsorted(offsets, entries, side="right") - 1
-
-
 def pair_index_type(n_entries: int, n_particles: int):
     """The integer type of the pair list's partners and reaction slots: int32 below 2^31
     entries and particles (4 bytes an entry saved twice, and once more in the last good
@@ -413,11 +408,11 @@ class State:
         radius = self.particles[8]
         cylinder_overlap = self.cylinders[6]
         # each kind of contact: its overlaps and the radius of the smaller sphere of each entry
-        pair_offsets, partners = self.pairs[0], self.pairs[1]
+        pair_offsets, partners, rows = self.pairs[0], self.pairs[1], neighbours.rows_of_entries
         kinds = (
-            (self.pairs[3], lambda e: np.minimum(radius[_rows(pair_offsets, e)], radius[partners[e]])),
-            (self.planes[4], lambda k: radius[_rows(self.planes[5], k)]),
-            (self.meshes[5], lambda k: radius[_rows(self.meshes[2], k)]),
+            (self.pairs[3], lambda e: np.minimum(radius[rows(pair_offsets, e)], radius[partners[e]])),
+            (self.planes[4], lambda k: radius[rows(self.planes[5], k)]),
+            (self.meshes[5], lambda k: radius[rows(self.meshes[2], k)]),
             (cylinder_overlap.reshape(-1), lambda k: radius[k // max(1, cylinder_overlap.shape[1])]),
         )
         deepest = max([0.0] + [float(overlap.max()) for overlap, _ in kinds if overlap.size])

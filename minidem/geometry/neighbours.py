@@ -514,11 +514,13 @@ def near_planes(positions, radii, wall_point, wall_normal, margin):
     return offsets, np.concatenate(planes) if planes else np.zeros(0, dtype=np.int32)
 
 
-def rows_of_entries(offsets):
-    """The row of each entry of a CSR list (offsets (N + 1,)), without a temporary of N
-    (np.repeat of np.diff): a binary search per entry, for the short lists (the planes
-    near each sphere) a large run makes at every list build."""
-    return np.searchsorted(offsets, np.arange(offsets[-1]), side="right") - 1
+def rows_of_entries(offsets, entries=None):
+    """The row of each entry of a CSR list (offsets (N + 1,)), or of each of ``entries``
+    (indices into it), without a temporary of N (np.repeat of np.diff): a binary search per
+    entry, for the short lists (the planes near each sphere) a large run makes at every
+    list build, and for a few entries of the long ones (State.deepest_contact)."""
+    entries = np.arange(offsets[-1]) if entries is None else entries
+    return np.searchsorted(offsets, entries, side="right") - 1
 
 
 @numba.njit(cache=True)
