@@ -3,8 +3,11 @@ reduce to, conservation laws, restitution, a settling pile, VTK output, and the
 per-contact history across neighbour-list rebuilds and thread counts."""
 
 import copy
+import ctypes
 import math
+import mmap
 import platform
+import sys
 import xml.etree.ElementTree as ET
 
 import numba
@@ -632,6 +635,37 @@ def test_last_good_copy_keeps_the_touching_contacts_rows_and_gives_every_bit_bac
     restored = {name: _full_array(state.capture(), name) for name in saved}
     for name, array in saved.items():
         assert np.array_equal(array.view(np.uint8), restored[name].view(np.uint8)), name
+
+
+def resident_pages(array):
+    """How many of the memory pages under ``array`` are resident (mincore, Linux)."""
+    start = array.__array_interface__["data"][0] // mmap.PAGESIZE * mmap.PAGESIZE
+    length = array.__array_interface__["data"][0] + array.nbytes - start
+    flags = (ctypes.c_ubyte * -(-length // mmap.PAGESIZE))()
+    assert ctypes.CDLL(None).mincore(ctypes.c_void_p(start), ctypes.c_size_t(length), flags) == 0
+    return sum(flag & 1 for flag in flags)
+
+
+def test_a_one_thread_run_stores_the_pairs_forces_and_never_the_partners_torques():
+    # finish_kick_drift alone reads the torque a pair gives its partner (State.pair_arrays:
+    # kept apart from the force). On one thread every particle is finished in the force
+    # pass, so nothing writes those rows and their pages are never resident (24 bytes a
+    # list entry of a pile, docs/multi-particle.md "Memory"); the forces are stored at the
+    # call's last step, for the contact forces of the state the run sees. Two threads
+    # read the torques they store: test_same_bits_on_one_and_two_threads.
+    scene = scenario.load_scene("scenarios/bench/settle.toml",
+                                DEEP_PILE[1:] + ["fill.0.count=100", "run.end_time=0.03"] + ONE_THREAD)
+    sim = simulation.Simulation(scene)
+    sim.run()
+    offsets, partners, history, overlap, reaction, slot = sim.state.pairs[:6]
+    partner_torque = sim.state.pairs[9]
+    touching = overlap > 0.0
+    assert touching.sum() > 20 and np.abs(history[touching]).max() > 0.0  # sheared contacts: torques on both
+    if sys.platform == "linux":  # on pages of their own (State.untouched_zeros), none resident
+        assert resident_pages(partner_torque) == 0
+    assert partner_torque.shape == (partners.shape[0], 3) and not partner_torque.any()
+    assert (reaction[slot[touching]] != 0.0).any(axis=1).all()
+    assert not reaction[slot[~touching]].any()
 
 
 def test_same_bits_on_one_and_two_threads(monkeypatch):

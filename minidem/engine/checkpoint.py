@@ -42,7 +42,9 @@ from minidem.files import atomic_write
 #    per (sphere, plane)
 # 4: sorted_step, and particle_id when the particles are stored in another order than the
 #    scenario's (Simulation.sort_in_space)
-FORMAT = 4
+# 5: pair_reaction is the force on i alone, (M, 3): the torque on the partner is not state
+#    (State.pair_arrays)
+FORMAT = 5
 CHECKPOINT = "checkpoint.npz"
 FINAL_STATE = "final_state.npz"
 LAST_GOOD = "last_good.npz"

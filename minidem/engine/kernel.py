@@ -62,10 +62,11 @@ during the pass (zeroed as each particle's drift is done, ``finish_range`` and
 left to finish_kick_drift (a partner in an earlier block, whose thread may reach the
 pair at any time, or one defer_finishing leaves there; its force rows hold its own
 contacts' force meanwhile) gets it stored at
-the pair's slot in its row of the transposed list, marked touching (reaction_in_use),
+the pair's slot in its row of the transposed list (the force in ``reaction``, j's
+torque in ``partner_torque``), marked touching (reaction_in_use),
 and adds those rows in ascending i, from zero, as the rows were summed: the same
 operations either way. The call's last step also stores every pair's
-reaction at its slot, for the contact forces of the state the run sees
+force at its slot, for the contact forces of the state the run sees
 (``State.contact_pairs``).
 
 Every sum is taken in an order fixed by the neighbour list, never by the thread
@@ -576,7 +577,7 @@ def settle_group(group_first, group_stop, partial_at, first, last, particles, pa
     nothing here allocates), so a call costs next to nothing."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material, last_force = particles
     (offsets, neighbours, pair_history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use,
-     reaction_pending) = pairs
+     reaction_pending, partner_torque) = pairs
     tile, tile_history, response, tile_entry, tile_row, own, own_count, tile_end = scratch
     first_partner, drift_on, position_at_build, half_skin_squared, energy_step = finishing
     # the tile's contacts: up to the group's last particle's end (read from the array,
@@ -635,8 +636,11 @@ def settle_group(group_first, group_stop, partial_at, first, last, particles, pa
                     r = non_negative(reaction_slot[e])
                     reaction_in_use[r] = 1
                     reaction[r, 0], reaction[r, 1], reaction[r, 2] = on_i
-                    if SPIN:
-                        reaction[r, 3], reaction[r, 4], reaction[r, 5] = tjx, tjy, tjz
+                    # j's torque only where finish_kick_drift reads it: State.contact_pairs
+                    # reads the forces alone, so on one thread nothing writes these rows,
+                    # and their pages (24 bytes an entry) are never resident
+                    if SPIN and not direct:
+                        partner_torque[r, 0], partner_torque[r, 1], partner_torque[r, 2] = tjx, tjy, tjz
         if i == partial_at:
             own[g, 0], own[g, 1], own[g, 2], own[g, 3], own[g, 4], own[g, 5], own_count[g] = acc
             # its row of own moves to the front: the next group starts at i
@@ -683,7 +687,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
     longest_row, history_width = 0, 0
     if PAIRS:
         (offsets, neighbours, pair_history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use,
-         reaction_pending) = pairs
+         reaction_pending, partner_torque) = pairs
         history_width = pair_history.shape[1]
         for i in range(first, last):
             longest_row = max(longest_row, offsets[i + 1] - offsets[i])
@@ -1065,7 +1069,7 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
     sampling, inertia, particle_energy = energy_step
     if PAIRS:  # else an empty tuple (see advance)
         (offsets, neighbours, history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use,
-         reaction_pending) = pairs
+         reaction_pending, partner_torque) = pairs
     moved_too_far = 0
     for p in range(first, last):
         if p < 0:  # never (non_negative)
@@ -1109,9 +1113,9 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
                         rfy -= reaction[k, 1]
                         rfz -= reaction[k, 2]
                         if SPIN:
-                            rtx += reaction[k, 3]
-                            rty += reaction[k, 4]
-                            rtz += reaction[k, 5]
+                            rtx += partner_torque[k, 0]
+                            rty += partner_torque[k, 1]
+                            rtz += partner_torque[k, 2]
             fx, fy, fz = fx + rfx, fy + rfy, fz + rfz
             if SPIN:
                 tx, ty, tz = tx + rtx, ty + rty, tz + rtz

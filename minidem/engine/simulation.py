@@ -671,7 +671,7 @@ class Simulation:
         # the old list's reactions and transposed index go first (rebuilt after the list):
         # the renumbering holds the old list and the new one, not the whole pair tuple twice
         old, state.pairs = state.pairs[:4], None
-        state.pairs = exchange_pairs(*old, order, self.exchange_signs) + (None,) * 5
+        state.pairs = exchange_pairs(*old, order, self.exchange_signs) + (None,) * 6
         del old
         state.first_partner = None
         state.sorted_step = mean_step(state.position)

@@ -9,6 +9,8 @@ chunks (:meth:`State.capture`) and puts a copy back after a failure or on resume
 
 from __future__ import annotations
 
+import mmap
+
 import numpy as np
 
 from minidem.engine import integrate
@@ -30,7 +32,7 @@ _STATE_TUPLES = {
     # recomputes them); the reactions are kept: a step rewrites them before reading, but
     # the last good state's VTK frame and contact forces read them as they are
     "pairs": ("pair_offsets", "pair_neighbours", "pair_history", "pair_overlap", "pair_reaction", None, None,
-              "pair_reaction_in_use", None),
+              "pair_reaction_in_use", None, None),
 }
 
 
@@ -53,8 +55,11 @@ _SPARSE_BLOCK = 1 << 16  # rows scanned at a time
 def _sparse_rows(name: str, array: np.ndarray) -> dict[str, np.ndarray]:
     """``array`` as its rows (first index) that hold any non-zero bit: {name@rows: their
     indices, name@values: the rows, name@shape: the shape}. Bits, not values, so a row
-    of -0.0 is kept and the expansion gives every bit back."""
-    rows = np.zeros(0, dtype=np.int64)
+    of -0.0 is kept and the expansion gives every bit back. The indices are int32 below
+    2^31 rows (4 bytes a touching contact less in each of the three arrays copied so,
+    12 bytes a particle of a settled pile)."""
+    index_type = np.int32 if array.shape[0] < 2**31 else np.int64
+    rows = np.zeros(0, dtype=index_type)
     if array.size:
         # an OR of the columns' bits, then np.take: several times faster than
         # (bits != 0).any(axis=1) and fancy indexing (settle, N = 200,000); a block of
@@ -70,7 +75,7 @@ def _sparse_rows(name: str, array: np.ndarray) -> dict[str, np.ndarray]:
             in_use = block[:, 0].copy()
             for column in range(1, block.shape[1]):
                 in_use |= block[:, column]
-            found.append(np.flatnonzero(in_use) + start)
+            found.append((np.flatnonzero(in_use) + start).astype(index_type))
         rows = np.concatenate(found)
     return {name + "@rows": rows, name + "@values": np.take(array, rows, axis=0),
             name + "@shape": np.array(array.shape, dtype=np.int64)}
@@ -113,6 +118,22 @@ def numpy_owned(array: np.ndarray) -> np.ndarray:
     return np.array(array) if array.nbytes >= 1 << 22 else array
 
 
+def untouched_zeros(rows: int, columns: int) -> np.ndarray:
+    """A (rows, columns) float64 array of zeros on an anonymous mapping of its own, whose
+    pages are not resident until something writes into them. ``np.zeros`` promises that
+    only above glibc's mmap threshold, which rises (up to 32 MiB) as mapped blocks are
+    freed: below it the zeros come from the heap, cleared and so resident at once (the
+    pairs' partner torques at N = 200,000: 22 MiB, all resident, none written on one
+    thread). For an array written in few places or none; one written everywhere gains
+    nothing and pays a page fault a page."""
+    nbytes = rows * columns * 8
+    if nbytes < mmap.PAGESIZE:
+        return np.zeros((rows, columns))
+    mapping = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
+    # the array holds the mapping (its base), which is unmapped with the last reference
+    return np.frombuffer(mapping, dtype=np.float64).reshape(rows, columns)
+
+
 def pair_arrays(offsets, partners, history, overlap, slot, reverse_offsets):
     """The kernel's pair tuple for a new list (``State.pairs``): its reactions zero and no
     pair touching yet. The reactions are in the transposed list's order (row ``slot[e]``
@@ -121,9 +142,14 @@ def pair_arrays(offsets, partners, history, overlap, slot, reverse_offsets):
     finishes and, at a call's last step, for every touching pair (State.contact_pairs),
     and sums the others' straight into their force rows, marking those particles in
     ``reaction_pending`` (a byte a particle, zero between passes; see
-    minidem.engine.kernel)."""
-    return (offsets, partners, history, overlap, np.zeros((partners.shape[0], 6)), slot, reverse_offsets,
-            np.zeros(partners.shape[0], dtype=np.uint8), np.zeros(offsets.shape[0] - 1, dtype=np.uint8))
+    minidem.engine.kernel). The torque on the partner, ``partner_torque`` (last, in the
+    same order), is kept apart from its force: finish_kick_drift alone reads it, so the
+    force pass writes it only for the partners that pass finishes (none on one thread)
+    and its pages are mostly never resident. Not state: each row read is written in the
+    same step (a capture does not hold it, a restore makes it zero)."""
+    return (offsets, partners, history, overlap, np.zeros((partners.shape[0], 3)), slot, reverse_offsets,
+            np.zeros(partners.shape[0], dtype=np.uint8), np.zeros(offsets.shape[0] - 1, dtype=np.uint8),
+            untouched_zeros(partners.shape[0], 3))
 
 
 class State:
@@ -183,9 +209,10 @@ class State:
         empty_index = np.zeros(0, dtype=np.int64)
         self.meshes = (walls.triangles, walls.triangle_material, np.zeros(n + 1, dtype=np.int64), empty_index,
                        np.zeros((0, h)), np.zeros(0))
-        # (offsets, partners, history, overlap, reactions (force on i, torque on j) in the
-        # transposed list's order, each entry's slot there,
-        # transposed offsets, whether each slot's pair touches: pair_arrays)
+        # (offsets, partners, history, overlap, reactions (the force on i) in the
+        # transposed list's order, each entry's slot there, transposed offsets, whether
+        # each slot's pair touches, the particles given a reaction in the force pass, the
+        # torques on the partners: pair_arrays)
         pair_index = np.zeros(0, dtype=pair_index_type(0, n))
         self.pairs = pair_arrays(np.zeros(n + 1, dtype=np.int64), pair_index, np.zeros((0, h)), np.zeros(0), pair_index,
                                  np.zeros(n + 1, dtype=np.int64))
@@ -377,7 +404,7 @@ class State:
         else:
             reverse_offsets, slot = np.zeros_like(offsets), partners.copy()
             self.first_partner = np.arange(len(offsets) - 1)
-        self.pairs = self.pairs[:5] + (slot, reverse_offsets) + self.pairs[7:]
+        self.pairs = self.pairs[:5] + (slot, reverse_offsets) + self.pairs[7:9] + (untouched_zeros(partners.shape[0], 3),)
         # the plane entries' history and overlap restored above belong to the list of
         # the planes near each sphere at the restored position_at_build: that list, again
         offsets, planes = self.near_plane_list()
