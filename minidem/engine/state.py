@@ -127,7 +127,7 @@ def untouched_zeros(rows: int, columns: int) -> np.ndarray:
     thread). For an array written in few places or none; one written everywhere gains
     nothing and pays a page fault a page."""
     nbytes = rows * columns * 8
-    if nbytes < mmap.PAGESIZE:
+    if nbytes < mmap.PAGESIZE or not hasattr(mmap, "MAP_ANONYMOUS"):  # (Windows: numpy's zeros)
         return np.zeros((rows, columns))
     mapping = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
     # the array holds the mapping (its base), which is unmapped with the last reference
