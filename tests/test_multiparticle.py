@@ -637,6 +637,38 @@ def test_last_good_copy_keeps_the_touching_contacts_rows_and_gives_every_bit_bac
         assert np.array_equal(array.view(np.uint8), restored[name].view(np.uint8)), name
 
 
+def test_a_list_build_that_fails_leaves_a_state_the_last_good_copy_restores(monkeypatch):
+    # Simulation.rebuild puts the old list back when the build fails (out of memory, an
+    # interrupt), for the restore a failure does. The rest of the pair tuple is gone
+    # then; State.restore must make it again, the same bits as a restore of the intact
+    # state, and the run must go on from there as from the copy.
+    scene = scenario.load_scene("scenarios/bench/settle.toml",
+                                DEEP_PILE[1:] + ["fill.0.count=100", "run.end_time=0.03"] + ONE_THREAD)
+    sim = simulation.Simulation(scene)
+    sim.run()
+    state = sim.state
+    copy_ = state.capture()
+    intact = copy.deepcopy(state)
+    intact.restore(copy_)
+
+    def out_of_memory(*args, **kwargs):
+        raise MemoryError
+    monkeypatch.setattr(state, "build_lists", out_of_memory)
+    with pytest.raises(MemoryError):
+        sim.rebuild(state)
+    monkeypatch.undo()
+    state.restore(copy_)
+    assert len(state.pairs) == len(intact.pairs)
+    for restored, expected in zip(state.pairs, intact.pairs):
+        assert restored.dtype == expected.dtype and np.array_equal(restored, expected)
+    # and a list build from there gives what it gives from the intact state
+    sim.rebuild(state)
+    sim.rebuild(intact)
+    assert state.pairs[1].shape[0] > 0
+    for built, expected in zip(state.pairs, intact.pairs):
+        assert np.array_equal(built, expected)
+
+
 def resident_pages(array):
     """How many of the memory pages under ``array`` are resident (mincore, Linux)."""
     start = array.__array_interface__["data"][0] // mmap.PAGESIZE * mmap.PAGESIZE

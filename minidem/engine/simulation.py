@@ -28,7 +28,7 @@ from minidem.contact import declarations, history as contact_history, laws
 from minidem.engine import integrate, kernel
 from minidem.engine.notices import notice_if_slow
 from minidem.engine.run_loop import RunLoop, RunResult
-from minidem.engine.state import STATE_ARRAYS, State, pair_arrays
+from minidem.engine.state import PAIR_TUPLE, STATE_ARRAYS, State, pair_arrays
 from minidem.geometry import neighbours, primitives
 from minidem.geometry.order import exchange_pairs, mean_step, permute_rows, scattered, spatial_order
 from minidem.scene import derived
@@ -671,7 +671,7 @@ class Simulation:
         # the old list's reactions and transposed index go first (rebuilt after the list):
         # the renumbering holds the old list and the new one, not the whole pair tuple twice
         old, state.pairs = state.pairs[:4], None
-        state.pairs = exchange_pairs(*old, order, self.exchange_signs) + (None,) * 6
+        state.pairs = exchange_pairs(*old, order, self.exchange_signs) + (None,) * (len(PAIR_TUPLE) - len(old))
         del old
         state.first_partner = None
         state.sorted_step = mean_step(state.position)
@@ -706,7 +706,9 @@ class Simulation:
                 overlap = np.full(found.shape[0], -1.0)
                 neighbours.carry_history(*old, offsets, found, history, overlap)
             except BaseException:
-                state.pairs = old + (None, None, None, None)  # as before the call (a failure restores from it)
+                # the list as before the call, the rest of the tuple made again by the
+                # restore a failure does (State.restore)
+                state.pairs = old + (None,) * (len(PAIR_TUPLE) - len(old))
                 raise
             del old
             if state.builds == 0:

@@ -34,6 +34,7 @@ _STATE_TUPLES = {
     "pairs": ("pair_offsets", "pair_neighbours", "pair_history", "pair_overlap", "pair_reaction", None, None,
               "pair_reaction_in_use", None, None),
 }
+PAIR_TUPLE = _STATE_TUPLES["pairs"]  # one name (or None) for each array of the kernel's pair tuple
 
 
 # per-contact arrays whose rows are all zero while the contact is not touching (a contact
@@ -389,7 +390,10 @@ class State:
                 if name in lists:
                     items[k] = lists[name]
                 elif name is not None:  # replaced: list rebuilds change the lengths
-                    items[k] = np.array(_full_array(arrays, name), dtype=items[k].dtype, order="C")
+                    # in the live array's type (a run's lists have one index type); none
+                    # after a list build that failed (Simulation.rebuild): the saved type
+                    items[k] = np.array(_full_array(arrays, name), order="C",
+                                        dtype=None if items[k] is None else items[k].dtype)
             setattr(self, group, tuple(items))
         # (the list's partners, the histories): one row each per entry
         for what, listed, histories in (("pair", self.pairs[1], self.pairs[2]),
@@ -404,7 +408,10 @@ class State:
         else:
             reverse_offsets, slot = np.zeros_like(offsets), partners.copy()
             self.first_partner = np.arange(len(offsets) - 1)
-        self.pairs = self.pairs[:5] + (slot, reverse_offsets) + self.pairs[7:9] + (untouched_zeros(partners.shape[0], 3),)
+        # the particles given a reaction in the force pass (zero between passes) and the
+        # partner torques (not state) anew, as a new list's (pair_arrays)
+        self.pairs = self.pairs[:5] + (slot, reverse_offsets, self.pairs[7], np.zeros(len(offsets) - 1, dtype=np.uint8),
+                                       untouched_zeros(partners.shape[0], 3))
         # the plane entries' history and overlap restored above belong to the list of
         # the planes near each sphere at the restored position_at_build: that list, again
         offsets, planes = self.near_plane_list()
