@@ -604,6 +604,15 @@ def test_spheres_far_from_a_plane_skip_it_and_nothing_changes(monkeypatch):
     assert np.array_equal(skipping.angular_velocity, every.angular_velocity)
 
 
+def small_pile():
+    """The simulation of a pile of 100 spheres, run on one thread to 0.03 s (pair and
+    wall contacts touching, some sheared, some ended)."""
+    sim = simulation.Simulation(scenario.load_scene(
+        "scenarios/bench/settle.toml", DEEP_PILE[1:] + ["fill.0.count=100", "run.end_time=0.03"] + ONE_THREAD))
+    sim.run()
+    return sim
+
+
 def test_last_good_copy_keeps_the_touching_contacts_rows_and_gives_every_bit_back():
     # The last good state (State.capture) keeps, of the per-contact histories and
     # reactions, only the rows that are not all zero. A contact that ends drops its
@@ -611,10 +620,7 @@ def test_last_good_copy_keeps_the_touching_contacts_rows_and_gives_every_bit_bac
     # must be touching contacts (overlap > 0; this law has no reach), and expanding the
     # copy must give the live arrays back bit for bit (-0.0 included), also after the
     # live state has been overwritten (State.restore, as a failure does).
-    scene = scenario.load_scene("scenarios/bench/settle.toml",
-                                DEEP_PILE[1:] + ["fill.0.count=100", "run.end_time=0.03"] + ONE_THREAD)
-    sim = simulation.Simulation(scene)
-    sim.run()
+    sim = small_pile()
     state = sim.state
     copy_ = state.capture()
     live = {"pair_history": state.pairs[2], "pair_reaction": state.pairs[4], "plane_history": state.planes[3]}
@@ -642,10 +648,7 @@ def test_a_list_build_that_fails_leaves_a_state_the_last_good_copy_restores(monk
     # interrupt), for the restore a failure does. The rest of the pair tuple is gone
     # then; State.restore must make it again, the same bits as a restore of the intact
     # state, and the run must go on from there as from the copy.
-    scene = scenario.load_scene("scenarios/bench/settle.toml",
-                                DEEP_PILE[1:] + ["fill.0.count=100", "run.end_time=0.03"] + ONE_THREAD)
-    sim = simulation.Simulation(scene)
-    sim.run()
+    sim = small_pile()
     state = sim.state
     copy_ = state.capture()
     intact = copy.deepcopy(state)
@@ -685,10 +688,7 @@ def test_a_one_thread_run_stores_the_pairs_forces_and_never_the_partners_torques
     # list entry of a pile, docs/multi-particle.md "Memory"); the forces are stored at the
     # call's last step, for the contact forces of the state the run sees. Two threads
     # read the torques they store: test_same_bits_on_one_and_two_threads.
-    scene = scenario.load_scene("scenarios/bench/settle.toml",
-                                DEEP_PILE[1:] + ["fill.0.count=100", "run.end_time=0.03"] + ONE_THREAD)
-    sim = simulation.Simulation(scene)
-    sim.run()
+    sim = small_pile()
     offsets, partners, history, overlap, reaction, slot = sim.state.pairs[:6]
     partner_torque = sim.state.pairs[9]
     touching = overlap > 0.0
