@@ -57,8 +57,9 @@ def _sparse_rows(name: str, array: np.ndarray) -> dict[str, np.ndarray]:
     """``array`` as its rows (first index) that hold any non-zero bit: {name@rows: their
     indices, name@values: the rows, name@shape: the shape}. Bits, not values, so a row
     of -0.0 is kept and the expansion gives every bit back. The indices are int32 below
-    2^31 rows (4 bytes a touching contact less in each of the three arrays copied so,
-    12 bytes a particle of a settled pile)."""
+    2^31 rows: 4 bytes a touching contact less in each array copied so, 29 bytes a
+    particle for the pairs' three in the settled pile of 200,000 (2.45 touching pairs a
+    particle)."""
     index_type = np.int32 if array.shape[0] < 2**31 else np.int64
     rows = np.zeros(0, dtype=index_type)
     if array.size:
