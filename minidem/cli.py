@@ -152,6 +152,10 @@ def command_run(args) -> int:
                     *(("--out", args.out) if args.out is not None else ()), "--resume"))
                 print(f"minidem: stopped at t = {time_s:.6g} s; checkpoint {path}: continue with `{again}`",
                       file=sys.stderr)
+            else:  # while the kernel compiled or loaded: nothing computed that a checkpoint would keep
+                print("minidem: stopped before the first step: " + (
+                    f"the checkpoint {policy.path} is as it was" if resume_from is not None
+                    else "no checkpoint (nothing was computed yet)"), file=sys.stderr)
             raise
         finally:
             signal.signal(signal.SIGTERM, previous_sigterm)

@@ -349,8 +349,11 @@ class RunLoop:
         finally:
             # a helper still running (the run failed or was interrupted while it compiled)
             # is ended and reaped here: left to the interpreter's exit, a second Ctrl-C
-            # could land in its Popen.__del__ and print a traceback
-            helper.stop()
+            # could land in its Popen.__del__ and print a traceback. Held: the second of two
+            # quick Ctrl-C landed in this wait itself, and the helper's pipe was left to the
+            # garbage collector ('warning: unclosed file')
+            with _interrupts_deferred():
+                helper.stop()
         if self.resume_from is None:
             self.energy.append((self.start_time, state.kinetic_energy(state.inertia)))
             if self.frames_on:
