@@ -68,7 +68,9 @@ def print_summary(summary: dict, out=None) -> None:
                       "sampled, the largest over a contact's smaller radius")]
         rows.append(("neighbour builds", summary["neighbour_builds"], "Verlet-list builds"))
     rows += [
-        ("steps", summary["steps"], f"dt = {_format_value(summary['dt_s'])} s"),
+        ("steps", summary["steps"], f"dt = {_format_value(summary['dt_s'])} s" + (
+            f"; {summary['free_flight_steps']} of them free flight, solved in closed form"
+            if summary.get("free_flight_steps") else "")),
         ("wall time", summary["wall_time_s"], "s"),
     ]
     width = max(len(name) for name, _, _ in rows)

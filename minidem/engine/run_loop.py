@@ -157,6 +157,8 @@ class RunResult:
     # smaller radius, samples where max_overlap (tracked runs only) is every step's
     sampled_max_overlap: float = 0.0
     sampled_max_overlap_ratio: float = 0.0
+    # of ``steps``, those of free flight solved in closed form (run.integrator = "analytic_flight")
+    flown_steps: int = 0
 
 class RunLoop:
     """One run of a :class:`Simulation`: the time loop in chunks of compiled steps, with
@@ -220,7 +222,10 @@ class RunLoop:
         # deepest_overlap: the deepest overlap (m) and the largest over a contact's smaller
         # radius at the checks on the grid (State.deepest_contact)
         self.loop = {"steps": 0, "frames": 0, "last_frame_step": -1, "gravity_work_max": 0.0,
-                     "deepest_overlap": [0.0, 0.0]}
+                     "deepest_overlap": [0.0, 0.0], "flown_steps": 0, "flight": None}
+        # every free flight of the one sphere among planes solved in closed form (fly), not
+        # only the one before the first touch; a trace, which has a row a step, is stepped
+        self.flies = scene.integrator == "analytic_flight" and not scene.trace
         self.energy, self.trace_chunks = [], []
         self.resume_from = resume_from
 
@@ -301,6 +306,8 @@ class RunLoop:
             saved = dict(meta["loop"])
             # a checkpoint written before deepest_overlap was kept: the samples start afresh
             saved.setdefault("deepest_overlap", [0.0, 0.0])
+            saved.setdefault("flown_steps", 0)  # and before later flights were solved in closed form
+            saved.setdefault("flight", None)
             loop.update({key: saved[key] for key in loop})
             self.energy = [(float(t), float(e)) for t, e in arrays["energy"]]
             if self.scene.trace and arrays["trace"].shape[0]:
@@ -427,8 +434,14 @@ class RunLoop:
         for live, saved in zip((self.probe, self.stats, self.status), good["tracking"]):
             live[:] = saved
         step, completing = good["loop"]["steps"], False
+        self.loop["flight"] = good["loop"]["flight"]  # the flights as the run flew them: the same bits
         while step < checked["steps"] and self.status[0] == kernel.OK:
-            taken, needs_rebuild = self.call(step, checked["steps"] - step, completing, self.no_trace)
+            taken = self.fly(step, checked["steps"] - step, sampled=False) if self.flies and not completing else 0
+            needs_rebuild = False
+            if not taken:
+                self.loop["flight"] = None
+                n_steps, stop = self.stepped(checked["steps"] - step)
+                taken, needs_rebuild = self.call(step, n_steps, completing, self.no_trace, stop_at_separation=stop)
             step, completing = step + taken, False
             if needs_rebuild:
                 sim.rebuild(state)
@@ -506,14 +519,90 @@ class RunLoop:
             chunk = min(chunk, max(2 * LoopThreads.MIN_STEPS, chunk // LoopThreads.PROBE_FRACTION))
         return chunk, chunk_threads, probing
 
-    def record(self, steps, taken, chunk):
+    def fly(self, start_step, n_steps, sampled=True):
+        """Up to ``n_steps`` steps of the one sphere's free flight among plane walls solved
+        in closed form instead of stepped; returns how many (0: it touches a plane, is
+        within a law's reach of one, or will be within a step: the kernel steps).
+        ``sampled``: the kinetic-energy samples of the steps flown are added to the run's.
+
+        Whole steps of the run's grid: the schedule (energy samples, frames, checkpoints)
+        and every later touch fall where stepping puts them. Velocity Verlet under the one
+        constant force, gravity, is exact (x + v dt + g dt^2/2 a step), so the flight is
+        the stepped one but for rounding, of which the closed form has less (one update,
+        not one a step). Spin is constant in flight.
+
+        A flight is planned once, from the state the kernel left (``loop["flight"]``: its
+        first step, the step a step short of the nearest plane's reach, and the position
+        and velocity it starts from), and every state in it is computed from that start:
+        the same bits however the run's chunks cut it, so a replay (``fail``) or a resumed
+        run (the plan is saved in checkpoints) repeats it exactly. The stored overlap of each plane is
+        set as the kernel's last step would have left it: the next step reads it as
+        'not touching before' and times the touch from it."""
+        state, sim, loop, dt = self.state, self.sim, self.loop, self.sim.dt
+        gravity = self.scene.gravity
+        flight = loop["flight"]
+        if flight is None:
+            point, normal, overlap = state.planes[0], state.planes[1], state.planes[4]
+            # apart from every plane by more than any law's reach (adhesion acts beyond
+            # touch): no force but gravity, and the kernel has dropped every plane's history
+            if overlap.shape[0] and float(overlap.max()) >= -sim.max_reach:
+                return 0
+            position, velocity = state.position[0], state.velocity[0]
+            within_reach = float(state.particles[8][0]) + sim.max_reach
+            free_time = min((integrate.time_to_touch(float((position - point[w]) @ normal[w]) - within_reach,
+                                                     -float(velocity @ normal[w]), -float(gravity @ normal[w]))
+                             for w in range(point.shape[0])), default=math.inf)
+            # a step short of the reach: the kernel steps on from a state still apart
+            end = (self.total_steps if free_time >= (self.total_steps - start_step + 2) * dt
+                   else start_step + int(free_time / dt) - 1)
+            if end - start_step < 1:
+                return 0
+            flight = loop["flight"] = (start_step, end, position.tolist(), velocity.tolist())
+        first_step, end = flight[0], flight[1]
+        steps = min(n_steps, end - start_step)
+        if steps < 1:
+            return 0
+        start_position, start_velocity = np.array(flight[2]), np.array(flight[3])
+        if sampled:
+            first, last = start_step // self.sample_steps + 1, (start_step + steps) // self.sample_steps
+            if last >= first:  # the kinetic energy at the sample steps it passes, as the kernel takes them
+                sample_step = np.arange(first, last + 1) * self.sample_steps
+                sample_velocity = start_velocity + ((sample_step - first_step) * dt)[:, None] * gravity
+                spin = state.angular_velocity[0]
+                energy = 0.5 * (state.mass[0] * np.einsum("sk,sk->s", sample_velocity, sample_velocity)
+                                + state.inertia[0] * float(spin @ spin))
+                self.energy.extend(zip((self.start_time + sample_step * dt).tolist(), energy.tolist()))
+            loop["flown_steps"] += steps
+        elapsed = (start_step + steps - first_step) * dt
+        state.position[0] = start_position + elapsed * (start_velocity + 0.5 * elapsed * gravity)
+        state.velocity[0] = start_velocity + elapsed * gravity
+        overlap = state.planes[4]
+        overlap[:] = state.plane_overlaps(*state.planes[5:7])
+        probe_wall = self.tracking[0]
+        if probe_wall >= 0:
+            self.probe[kernel.PROBE_OVERLAP] = overlap[probe_wall]
+        return steps
+
+    def stepped(self, n_steps):
+        """(steps, stop_at_separation) of a chunk the kernel steps. Where flights are
+        flown (fly): in contact or within a law's reach of a plane, until the contact ends
+        (the flight after it is then flown); a sphere flying to a touch (fly stopped a
+        step short of the reach) steps the two steps to it."""
+        if not self.flies:
+            return n_steps, self.stop_at_separation
+        overlap = self.state.planes[4]
+        if overlap.shape[0] and float(overlap.max()) >= -self.sim.max_reach:
+            return n_steps, True
+        return min(n_steps, 2), self.stop_at_separation
+
+    def record(self, steps, returned_early):
         """After a chunk that passed the checks: energy sample, frame, progress; returns
         whether the run stops here at separation."""
         state, loop, stats = self.state, self.loop, self.stats
         now = self.start_time + steps * self.sim.dt
         # stop_at_separation: the last contact ended (the kernel returns early, or
         # it ended on the chunk's last step, which must not cost one more step)
-        separating = self.stop_at_separation and (taken < chunk or (
+        separating = self.stop_at_separation and (returned_early or (
             stats[kernel.FIRST_CONTACT_TIME] >= 0.0 and state.count_contacts() == 0))
         at_frame = self.frames_on and steps >= self.frame_step(loop["frames"])
         # every sample_steps the kernel has taken the sample
@@ -545,16 +634,24 @@ class RunLoop:
             while loop["steps"] < self.total_steps:
                 steps = loop["steps"]
                 chunk, chunk_threads, probing = self.next_chunk()
-                trace = np.zeros((chunk, len(kernel.TRACE_COLUMNS))) if self.scene.trace else self.no_trace
-                chunk_started = wallclock.perf_counter()
-                # compiled code never sees a signal before it returns anyway: held, a
-                # Ctrl-C is delivered here after the call, never inside numba's dispatcher
-                # (which then returned 'a result with an exception set', a SystemError)
                 with _interrupts_deferred():
-                    taken, needs_rebuild = self.call(steps, chunk, completing, trace, chunk_threads, sampled=True)
-                self.loop_threads.record(chunk_threads, taken, wallclock.perf_counter() - chunk_started)
-                if self.scene.trace:
-                    self.trace_chunks.append(trace[:taken])
+                    flown = self.fly(steps, chunk) if self.flies and not completing else 0
+                if flown:
+                    taken, needs_rebuild = flown, False
+                else:
+                    trace = np.zeros((chunk, len(kernel.TRACE_COLUMNS))) if self.scene.trace else self.no_trace
+                    chunk_started = wallclock.perf_counter()
+                    # compiled code never sees a signal before it returns anyway: held, a
+                    # Ctrl-C is delivered here after the call, never inside numba's dispatcher
+                    # (which then returned 'a result with an exception set', a SystemError)
+                    loop["flight"] = None  # stepped: a flight after this is planned afresh
+                    chunk, stop = self.stepped(chunk)
+                    with _interrupts_deferred():
+                        taken, needs_rebuild = self.call(steps, chunk, completing, trace, chunk_threads, sampled=True,
+                                                         stop_at_separation=stop)
+                    self.loop_threads.record(chunk_threads, taken, wallclock.perf_counter() - chunk_started)
+                    if self.scene.trace:
+                        self.trace_chunks.append(trace[:taken])
                 steps = loop["steps"] = steps + taken
                 completing = False
                 self.check_status(steps)
@@ -566,7 +663,7 @@ class RunLoop:
                     completing = True  # the next call completes the step from its forces
                     continue
                 self.check(steps, on_grid=steps % self.check_steps == 0 or steps == self.total_steps)
-                separating = self.record(steps, taken, chunk)
+                separating = self.record(steps, returned_early=taken < chunk and not flown)
                 checkpoint_due = policy is not None and not separating and steps < self.total_steps and (
                     (self.checkpoint_steps and steps % self.checkpoint_steps == 0)
                     or (policy.wall_interval and wallclock.perf_counter() - last_checkpoint_wall
@@ -634,7 +731,7 @@ class RunLoop:
             energy=np.array(self.energy), contact_statistics=not sim.parallel,
             gravity_work_max=self.loop["gravity_work_max"], supply_budget=sim.supply_budget,
             sampled_max_overlap=self.loop["deepest_overlap"][0],
-            sampled_max_overlap_ratio=self.loop["deepest_overlap"][1],
+            sampled_max_overlap_ratio=self.loop["deepest_overlap"][1], flown_steps=self.loop["flown_steps"],
         )
 
 

@@ -216,6 +216,7 @@ def summary(result: RunResult) -> dict:
         "peak_kinetic_energy_j": float(result.energy[:, 1].max()) if result.energy is not None else None,
         "sampled_max_overlap_m": result.sampled_max_overlap,
         "sampled_max_overlap_ratio": result.sampled_max_overlap_ratio,
+        "free_flight_steps": result.flown_steps,
         "neighbour_builds": result.neighbour_builds,
         "threads": result.threads,
         "separated": result.separated,

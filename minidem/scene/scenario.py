@@ -163,11 +163,13 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
             "Rayleigh or stability limit named under dt may make the step smaller)",
             low=20),
         Key("integrator", "choice", "auto", "", "\"auto\": \"analytic_flight\" for one particle among plane "
-            "walls (the free flight is then never stepped), else \"velocity_verlet\"; "
+            "walls (its free flights are then never stepped, unless output.trace asks for every step), else "
+            "\"velocity_verlet\"; "
             "\"velocity_verlet\" (second order); "
             "\"symplectic_euler\" (v += F dt/m, then x += v dt); \"analytic_flight\" (velocity Verlet, with "
             "the free flight before the first contact solved in closed form and the steps starting at the "
-            "exact touch time; one particle and plane walls). See docs/time-step.md",
+            "exact touch time, and every later free flight flown in closed form in whole steps; one particle "
+            "and plane walls). See docs/time-step.md",
             choices=("auto", "velocity_verlet", "symplectic_euler", "analytic_flight")),
         Key("allow_unstable_dt", "bool", False, "", "accept a run.dt above the integrator's stability limit "
             "(refused otherwise, with the limit and a suggested dt; see docs/time-step.md)"),

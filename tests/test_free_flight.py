@@ -1,0 +1,154 @@
+"""Every free flight of one sphere among plane walls in closed form (run.integrator =
+"analytic_flight", the default there): a ball bouncing on a floor under gravity.
+
+The scene: the paper's glass sphere (R = 25 mm, 2650 kg/m3, E = 70 GPa, nu = 0.3) touching
+a glass floor at t = 0 and moving into it at 0.5 m/s under g = 9.81 m/s^2, elastic Hertz
+(law hm, restitution 1), for 0.25 s: three contacts and the two flights between them, and
+the run ends in a third flight. Touching at t = 0, analytic flight and velocity Verlet are
+the same bits up to the first separation (docs/time-step.md), so run.integrator =
+"velocity_verlet", which steps every flight, is the stepped reference.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from conftest import OBLIQUE
+from minidem import api, cli
+from minidem.engine import checkpoint, run_loop, simulation
+from minidem.scene import scenario
+from test_faults import as_options, assert_same_state
+
+G = 9.81
+BOUNCE = ['contact.law="hm"', "impact.angle_deg=0", "impact.speed=0.5",
+          f"run.gravity=[0, 0, {-G}]", 'run.stop="time"', "run.end_time=0.25"]
+
+
+@pytest.fixture(scope="module")
+def flown_and_stepped():
+    """The bounce run twice: its flights flown (the default, analytic flight) and stepped
+    (velocity Verlet)."""
+    return api.run(OBLIQUE, BOUNCE).raw, api.run(OBLIQUE, BOUNCE + ['run.integrator="velocity_verlet"']).raw
+
+
+def test_the_flights_between_bounces_are_flown_and_equal_the_stepped_ones(flown_and_stepped):
+    """Velocity Verlet under gravity alone is exact (x + v dt + g dt^2/2 a step), so flying
+    a flight in closed form changes only rounding: over the run's 5 million steps the
+    stepped one's rounding grows to about N eps = 5e6 x 1.1e-16 = 6e-10 of a value, so
+    the two agree to 1e-8 relative. The contacts start and end at the same instants (the
+    kernel's touch and separation times interpolated within a step) to that difference
+    over the touch speed, and every energy sample is the same sample. Almost every step out of contact is flown:
+    those stepped are the contacts' (3 x ~4000) and two steps before each later touch."""
+    flown, stepped = flown_and_stepped
+    assert flown.steps == stepped.steps and stepped.flown_steps == 0
+    scale = float(np.abs(stepped.position).max())
+    np.testing.assert_allclose(flown.position, stepped.position, rtol=0, atol=1e-8 * scale)
+    np.testing.assert_allclose(flown.velocity, stepped.velocity, rtol=0,
+                               atol=1e-8 * float(np.abs(stepped.velocity).max()))
+    # a touch's instant moves by a position's difference over the touch speed (0.52 m/s)
+    for name in ("first_contact_time", "last_separation_time"):
+        assert getattr(flown, name) == pytest.approx(getattr(stepped, name), abs=1e-8 * scale / 0.5)
+    assert flown.energy.shape == stepped.energy.shape
+    np.testing.assert_allclose(flown.energy[:, 0], stepped.energy[:, 0], rtol=0, atol=1e-6 * flown.dt)
+    # a velocity's difference (1e-8 of the largest) gives m v dv: 1e-8 of the largest energy at most
+    np.testing.assert_allclose(flown.energy[:, 1], stepped.energy[:, 1], rtol=0,
+                               atol=2e-8 * float(stepped.energy[:, 1].max()))
+    in_contact = 3 * 4000 * 1.05  # three contacts of ~steps_per_contact steps
+    assert flown.flown_steps >= flown.steps - in_contact - 2 * 3
+
+
+def test_the_bouncing_ball_keeps_its_energy_and_bounces_on_time(flown_and_stepped):
+    """Physics of the flown run. Elastic Hertz: the mechanical energy (kinetic plus m g z)
+    at the end, in flight after three contacts, is the initial one to within velocity
+    Verlet's energy error in a contact, of order (pi / steps_per_contact)^2 = 6e-7.
+
+    The contacts' instants: each flight lasts 2 v0 / g (an elastic rebound leaves at the
+    speed it came, v0); each contact lasts the Hertz duration tc = 2.868 (m^2 / (R E*^2
+    v0))^(1/5) (the paper's eq 13). The third separation is then 3 tc + 2 (2 v0 / g). Gravity
+    during a contact changes its duration by about m g / Fmax of it (Fmax, Hertz's peak
+    force at v0, 1.6 kN against m g = 1.7 N): the tolerance is three contacts' worth,
+    3 tc m g / Fmax (6e-7 s), and a step."""
+    flown, _ = flown_and_stepped
+    scene = flown.scene
+    radius, mass = float(scene.radius[0]), float(scene.mass[0])
+    effective_modulus = 70e9 / (2.0 * (1.0 - 0.3 ** 2))  # sphere and wall of one material
+    energy = [0.5 * mass * float(v @ v) + mass * G * float(x[2])
+              for x, v in ((scene.position[0], scene.velocity[0]), (flown.position[0], flown.velocity[0]))]
+    assert energy[1] == pytest.approx(energy[0], rel=(math.pi / scene.steps_per_contact) ** 2)
+    # in flight at the end, rising or falling at the speed its height gives
+    assert float(flown.position[0, 2]) > radius
+    assert abs(float(flown.velocity[0, 2])) == pytest.approx(
+        math.sqrt(2.0 * energy[0] / mass - 2.0 * G * float(flown.position[0, 2])), rel=1e-6)
+
+    touch_speed = 0.5
+    contact_time = 2.868 * (mass * mass / (radius * effective_modulus ** 2 * touch_speed)) ** 0.2
+    peak_force = 4.0 / 3.0 * effective_modulus * math.sqrt(radius) * (
+        15.0 * mass * touch_speed ** 2 / (16.0 * effective_modulus * math.sqrt(radius))) ** 0.6
+    assert flown.first_contact_time == 0.0
+    third_separation = 3.0 * contact_time + 2.0 * (2.0 * touch_speed / G)
+    assert flown.last_separation_time == pytest.approx(
+        third_separation, abs=3.0 * contact_time * mass * G / peak_force + flown.dt)
+
+
+def test_a_run_stopped_in_flight_resumes_bit_for_bit(tmp_path):
+    """The flight is planned once and every state in it computed from its start (saved
+    in the checkpoint), so a run interrupted in mid-flight and resumed ends with the bits
+    of one that was not, though its chunks cut the flight elsewhere."""
+    out = tmp_path / "out"
+    sim = simulation.Simulation(scenario.load_scene(OBLIQUE, BOUNCE, out))
+
+    def interrupt(steps, total, contacts):  # in the second flight (contacts at 0 and ~0.102 s)
+        if steps * sim.dt > 0.16:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        sim.run(progress=interrupt, checkpoints=checkpoint.Policy(out, interval=0.013))
+    stopped_at, path = sim.interrupted_at
+    arrays, meta = checkpoint.read(path)
+    assert 0.11 < stopped_at < 0.2 and meta["loop"]["flight"] is not None  # stopped in a planned flight
+    assert cli.main(["run", str(OBLIQUE), "--out", str(out), "--quiet", "--resume", *as_options(BOUNCE)]) \
+        == cli.EXIT_OK
+
+    reference = tmp_path / "reference"
+    simulation.Simulation(scenario.load_scene(OBLIQUE, BOUNCE, reference)).run(
+        checkpoints=checkpoint.Policy(reference))
+    got, got_meta = checkpoint.read(out / checkpoint.FINAL_STATE)
+    want, want_meta = checkpoint.read(reference / checkpoint.FINAL_STATE)
+    assert_same_state(got, want)
+    assert got_meta["loop"]["flown_steps"] == want_meta["loop"]["flown_steps"] > 0.99 * want_meta["step"]
+
+
+def test_a_failure_in_flight_writes_the_last_checked_state_bit_for_bit(tmp_path, monkeypatch):
+    """A blow-up stop goes back to the last copy of the state and replays the steps to the
+    last check that passed (RunLoop.fail): the replay flies the flights as the run did,
+    so the state written is the one a run ending at that step ends in, to the bit. The
+    guard is made to fail the first check after t = 0.17 s, in the third flight."""
+    from minidem.engine import blowup
+
+    real_check, real_fly, replayed = blowup.Guard.check, run_loop.RunLoop.fly, []
+
+    def failing_check(self, state, time, gravity_work_max):
+        if time > 0.17:
+            return blowup.Fault("energy", 0, "made to fail by the test"), gravity_work_max
+        return real_check(self, state, time, gravity_work_max)
+
+    def counted_fly(self, start_step, n_steps, sampled=True):
+        taken = real_fly(self, start_step, n_steps, sampled)
+        if not sampled:
+            replayed.append(taken)
+        return taken
+
+    monkeypatch.setattr(blowup.Guard, "check", failing_check)
+    monkeypatch.setattr(run_loop.RunLoop, "fly", counted_fly)
+    out = tmp_path / "out"
+    with pytest.raises(run_loop.RunFailure):
+        simulation.Simulation(scenario.load_scene(OBLIQUE, BOUNCE, out)).run(checkpoints=checkpoint.Policy(out))
+    assert sum(replayed) > 0  # the replay flew
+    arrays, meta = checkpoint.read(out / checkpoint.LAST_GOOD)
+    monkeypatch.setattr(blowup.Guard, "check", real_check)
+    reference = api.run(OBLIQUE, BOUNCE[:-1] + [f"run.end_time={meta['time']!r}"]).raw
+    assert reference.steps == meta["step"]
+    for name in ("position", "velocity", "angular_velocity"):
+        assert np.array_equal(arrays[name], getattr(reference, name)), name
