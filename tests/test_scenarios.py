@@ -26,7 +26,7 @@ SCENARIOS = sorted((REPO / "scenarios").rglob("*.toml"))
 def test_every_shipped_scenario_is_found():
     names = {p.name for p in SCENARIOS}
     assert {"oblique.toml", "settle.toml", "newtons_cradle.toml", "two_spheres_head_on.toml",
-            "two_spheres_oblique.toml", "hopper.toml", "column_collapse.toml"} <= names
+            "two_spheres_oblique.toml", "hopper.toml", "column_collapse.toml", "bouncing_ball.toml"} <= names
     assert len([p for p in SCENARIOS if p.parent.name == "paper"]) == 5
 
 
@@ -157,3 +157,39 @@ def test_newtons_cradle_passes_momentum_down_the_row():
                             material.poisson_ratio, float(scene.velocity[0, 0]), scene.n_particles)
     assert speeds == pytest.approx(expected, abs=1e-5 * float(scene.velocity[0, 0]))
     assert np.abs(result.velocity[:, 1:]).max() == 0.0 and np.abs(result.angular_velocity).max() == 0.0
+
+
+def test_the_bouncing_ball_bounces_at_its_restitution_and_flies_its_flights():
+    """scenarios/bouncing_ball.toml: dropped from h = 0.1 m, linear spring-dashpot with
+    e = 0.8 (exact for that law, whatever the speed: docs/laws.md), g = 9.81 m/s^2, 1 s.
+
+    Without gravity during the contacts, the first touch is at t0 = sqrt(2 h / g), rebound
+    k leaves at e^k v0 (v0 = sqrt(2 g h)) and flies 2 e^k v0 / g, so the seventh contact
+    ends at t0 + sum_k=1..6 2 e^k v0 / g + 7 contact durations, and the mechanical energy
+    after seven contacts is e^14 of m g h. A contact lasts about tc = pi / omega_d, the
+    damped half-period of the linear spring-dashpot (omega_d = sqrt(kn / m (1 - zeta^2)),
+    from the law's prepared constants; the clipped force and gravity change it a little):
+    the seven durations are taken as 7 tc with 7 tc of tolerance. Gravity
+    acting during a contact changes that rebound's speed by at most g tc: each flight's
+    duration by at most 2 tc (12 tc more tolerance for six flights), and the energy by
+    2 g tc / v_k of it (2.6 % summed over the seven contacts). The first touch, from the
+    closed-form fall, is exact. Almost every step is flown: stepped are the contacts'
+    (tc / dt each, 1 % allowed for the change above), the step of each separation and
+    the two before each touch after the first."""
+    scene = scenario.load_scene(REPO / "scenarios" / "bouncing_ball.toml", output_directory="-")
+    result = simulation.Simulation(scene).run()
+    g, height, e = 9.81, 0.1, 0.8
+    constants = result.constants[(0, 0)]
+    mass = float(scene.mass[0])
+    contact_time = math.pi * math.sqrt(mass / constants["normal_stiffness"]) / math.sqrt(
+        1.0 - constants["damping_ratio"] ** 2)
+    speed = math.sqrt(2.0 * g * height)
+    first_touch = math.sqrt(2.0 * height / g)
+    assert result.first_contact_time == pytest.approx(first_touch, rel=1e-12)
+    seventh = first_touch + 7 * contact_time + sum(2.0 * e ** k * speed / g for k in range(1, 7))
+    assert result.last_separation_time == pytest.approx(seventh, abs=(7 + 12) * contact_time)
+    z = float(result.position[0, 2] - scene.radius[0])
+    energy = 0.5 * mass * float(result.velocity[0] @ result.velocity[0]) + mass * g * z
+    bound = sum(2.0 * g * contact_time / (e ** k * speed) for k in range(7))
+    assert energy / (mass * g * height) == pytest.approx(e ** 14, rel=bound)
+    assert result.flown_steps >= result.steps - 7 * (1.01 * contact_time / result.dt + 1) - 2 * 6
