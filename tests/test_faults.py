@@ -48,6 +48,19 @@ def assert_same_state(got: dict, want: dict):
     assert not different, f"arrays that differ: {different}"
 
 
+def assert_ends_as_uninterrupted(out, path, overrides, tmp_path) -> tuple[dict, dict, dict]:
+    """The final state a resumed run wrote in ``out`` is, array for array, the one an
+    uninterrupted run of the same scene writes; returns (its arrays, its meta, the
+    uninterrupted run's meta)."""
+    reference = tmp_path / "reference"
+    simulation.Simulation(scenario.load_scene(path, overrides, reference)).run(
+        checkpoints=checkpoint.Policy(reference))
+    got, got_meta = checkpoint.read(out / checkpoint.FINAL_STATE)
+    want, want_meta = checkpoint.read(reference / checkpoint.FINAL_STATE)
+    assert_same_state(got, want)
+    return got, got_meta, want_meta
+
+
 def assert_files_complete(directory, n_particles):
     """Every file under a final name is whole: the .pvd files parse and list only files
     that exist, every .vtu reads back with all its points, every .npz loads."""
@@ -150,12 +163,7 @@ def test_sigterm_writes_a_checkpoint_that_resumes_bit_for_bit(tmp_path):
     done = run_cli(*command, "--resume")
     assert done.returncode == 0, done.stderr
 
-    reference = tmp_path / "reference"
-    simulation.Simulation(scenario.load_scene(SETTLE, overrides, reference)).run(
-        checkpoints=checkpoint.Policy(reference))
-    got, _ = checkpoint.read(out / checkpoint.FINAL_STATE)
-    want, _ = checkpoint.read(reference / checkpoint.FINAL_STATE)
-    assert_same_state(got, want)
+    assert_ends_as_uninterrupted(out, SETTLE, overrides, tmp_path)
 
 
 def test_interrupted_impact_resumes_bit_for_bit_and_refuses_another_scenario(tmp_path, capsys):
@@ -193,14 +201,9 @@ def test_interrupted_impact_resumes_bit_for_bit_and_refuses_another_scenario(tmp
     checkpoint.write(path, arrays, meta)
     assert cli.main(args) == cli.EXIT_OK, capsys.readouterr().err
 
-    reference = tmp_path / "reference"
-    simulation.Simulation(scenario.load_scene(OBLIQUE, overrides, reference)).run(
-        checkpoints=checkpoint.Policy(reference))
-    got, got_meta = checkpoint.read(out / checkpoint.FINAL_STATE)
-    want, _ = checkpoint.read(reference / checkpoint.FINAL_STATE)
+    got, got_meta, _ = assert_ends_as_uninterrupted(out, OBLIQUE, overrides, tmp_path)
     # one trace row per step: those before the interruption came from the checkpoint
     assert got["trace"].shape[0] == got_meta["step"] > 2500
-    assert_same_state(got, want)
     # and with nothing left to resume
     assert cli.main(args) == cli.EXIT_BAD_INPUT
     assert "has finished" in capsys.readouterr().err
