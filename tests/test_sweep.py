@@ -342,16 +342,30 @@ def test_killed_sweep_command_resumes_with_only_the_missing_cases(slow_reference
                     "(pip install 'minidem[dask]'; .ci/run installs it)")
 def test_dask_sweep_survives_a_killed_worker_with_identical_results(slow_reference, tmp_path):
     """`dask scheduler` and two `dask worker` processes (one thread each) on 127.0.0.1;
-    one worker is SIGKILLed once the first case is in: the scheduler reruns its task on
-    the other and sweep.csv equals the local run's, byte for byte."""
+    one worker is SIGKILLed while a case is on it: the scheduler reruns its task on the
+    other and sweep.csv equals the local run's, byte for byte.
+
+    The kill waits for a task on that worker (the scheduler's own record), not for the
+    first row of the journal: on CI's loaded two cores the client once wrote its first
+    row when all six cases were done, and the kill landed after the sweep."""
+    from distributed import Client
+
     path, expected = slow_reference
     out = tmp_path / "out"
     env = dict(os.environ)  # MINIDEM_CACHE_DIR / NUMBA_CACHE_DIR: the workers load the kernel from the cache
-    with executors.LocalDaskProcesses(2, env=env) as cluster:
+    with executors.LocalDaskProcesses(2, env=env) as cluster, \
+            Client(cluster.address, set_as_default=False) as watcher:
+        # the worker killed: the one in the process group of cluster.workers[0]
+        victim = next(address for address, group in watcher.run(os.getpgrp).items()
+                      if group == cluster.workers[0].pid)
         process = _start("run", path, "--out", out, "--scheduler", cluster.address, "--quiet",
                          *[f"--set={s}" for s in SLOW])
         try:
-            done_at_kill = _wait_for_journal_rows(out, process)
+            deadline = time.monotonic() + 300
+            while not watcher.processing(workers=[victim]).get(victim):
+                assert process.poll() is None and time.monotonic() < deadline, "no case reached the worker"
+                time.sleep(0.005)
+            done_at_kill = len(_journal_rows(out)) if (out / sweep.JOURNAL).exists() else 0
             assert cluster.kill_worker(0) == -signal.SIGKILL
             stdout, stderr = process.communicate(timeout=600)
         finally:

@@ -226,6 +226,12 @@ class RunLoop:
         # every free flight of the one sphere among planes solved in closed form (fly), not
         # only the one before the first touch; a trace, which has a row a step, is stepped
         self.flies = scene.integrator == "analytic_flight" and not scene.trace
+        if self.flies:
+            # the overlap above which the sphere's contact with each plane lives: 0, or
+            # minus the reach of a law acting beyond touch for that pair of materials
+            rows = sim.pair_row[scene.particle_material[0], scene.wall_material]
+            self.plane_lives_above = (-sim.constants[rows, -1] if sim.law.reach is not None
+                                      else np.zeros(rows.shape[0]))
         self.energy, self.trace_chunks = [], []
         self.resume_from = resume_from
 
@@ -521,8 +527,8 @@ class RunLoop:
 
     def fly(self, start_step, n_steps, sampled=True):
         """Up to ``n_steps`` steps of the one sphere's free flight among plane walls solved
-        in closed form instead of stepped; returns how many (0: it touches a plane, is
-        within a law's reach of one, or will be within a step: the kernel steps).
+        in closed form instead of stepped; returns how many (0: it touches a plane, or
+        will within two steps: the kernel steps).
         ``sampled``: the kinetic-energy samples of the steps flown are added to the run's.
 
         Whole steps of the run's grid: the schedule (energy samples, frames, checkpoints)
@@ -532,29 +538,35 @@ class RunLoop:
         not one a step). Spin is constant in flight.
 
         A flight is planned once, from the state the kernel left (``loop["flight"]``: its
-        first step, the step a step short of the nearest plane's reach, and the position
+        first step, its last, a step or two short of the first touch (of a law acting beyond
+        touch: of its reach), checked to be apart, and the position
         and velocity it starts from), and every state in it is computed from that start:
         the same bits however the run's chunks cut it, so a replay (``fail``) or a resumed
         run (the plan is saved in checkpoints) repeats it exactly. The stored overlap of each plane is
         set as the kernel's last step would have left it: the next step reads it as
         'not touching before' and times the touch from it."""
-        state, sim, loop, dt = self.state, self.sim, self.loop, self.sim.dt
+        state, loop, dt = self.state, self.loop, self.sim.dt
         gravity = self.scene.gravity
         flight = loop["flight"]
         if flight is None:
-            point, normal, overlap = state.planes[0], state.planes[1], state.planes[4]
-            # apart from every plane by more than any law's reach (adhesion acts beyond
-            # touch): no force but gravity, and the kernel has dropped every plane's history
-            if overlap.shape[0] and float(overlap.max()) >= -sim.max_reach:
-                return 0
+            if self.touching():
+                return 0  # a contact lives: the kernel steps it
+            # apart from every plane (for a law acting beyond touch, beyond its reach): no
+            # force but gravity, and the kernel has dropped every plane's history
+            point, normal = state.planes[0], state.planes[1]
             position, velocity = state.position[0], state.velocity[0]
-            within_reach = float(state.particles[8][0]) + sim.max_reach
-            free_time = min((integrate.time_to_touch(float((position - point[w]) @ normal[w]) - within_reach,
-                                                     -float(velocity @ normal[w]), -float(gravity @ normal[w]))
-                             for w in range(point.shape[0])), default=math.inf)
-            # a step short of the reach: the kernel steps on from a state still apart
+            radius = float(state.particles[8][0])
+            free_time = min((integrate.time_to_touch(
+                float((position - point[w]) @ normal[w]) - radius + float(self.plane_lives_above[w]),
+                -float(velocity @ normal[w]), -float(gravity @ normal[w])) for w in range(point.shape[0])),
+                default=math.inf)
+            # a step or two short of the reach: the kernel steps on from a state still apart
             end = (self.total_steps if free_time >= (self.total_steps - start_step + 2) * dt
                    else start_step + int(free_time / dt) - 1)
+            # and apart there, whatever the rounding (halved until it is)
+            while end > start_step and np.any(self.flown_overlaps(end - start_step, position, velocity)
+                                                > self.entry_lives_above()):
+                end = start_step + (end - start_step) // 2
             if end - start_step < 1:
                 return 0
             flight = loop["flight"] = (start_step, end, position.tolist(), velocity.tolist())
@@ -583,6 +595,24 @@ class RunLoop:
             self.probe[kernel.PROBE_OVERLAP] = overlap[probe_wall]
         return steps
 
+    def entry_lives_above(self):
+        """plane_lives_above for each entry of the sphere's list of planes (state.planes)."""
+        return self.plane_lives_above[self.state.planes[6]]
+
+    def touching(self):
+        """Whether the one sphere's contact with some plane lives (its stored overlap, the
+        kernel's last step's, above the pair's lives_above), as the kernel decides it."""
+        overlap = self.state.planes[4]
+        return bool(overlap.shape[0]) and bool(np.any(overlap > self.entry_lives_above()))
+
+    def flown_overlaps(self, steps, position, velocity):
+        """The overlap with each entry's plane after ``steps`` steps of free flight from
+        ``position``, ``velocity`` (as State.plane_overlaps computes it)."""
+        elapsed = steps * self.sim.dt
+        moved = position + elapsed * (velocity + 0.5 * elapsed * self.scene.gravity)
+        point, normal, planes = self.state.planes[0], self.state.planes[1], self.state.planes[6]
+        return float(self.state.particles[8][0]) - np.einsum("ek,ek->e", moved - point[planes], normal[planes])
+
     def stepped(self, n_steps):
         """(steps, stop_at_separation) of a chunk the kernel steps. Where flights are
         flown (fly): in contact or within a law's reach of a plane, until the contact ends
@@ -590,8 +620,7 @@ class RunLoop:
         step short of the reach) steps the two steps to it."""
         if not self.flies:
             return n_steps, self.stop_at_separation
-        overlap = self.state.planes[4]
-        if overlap.shape[0] and float(overlap.max()) >= -self.sim.max_reach:
+        if self.touching():
             return n_steps, True
         return min(n_steps, 2), self.stop_at_separation
 

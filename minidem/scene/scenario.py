@@ -163,7 +163,8 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
             "Rayleigh or stability limit named under dt may make the step smaller)",
             low=20),
         Key("integrator", "choice", "auto", "", "\"auto\": \"analytic_flight\" for one particle among plane "
-            "walls (its free flights are then never stepped, unless output.trace asks for every step), else "
+            "walls (its free flights are then flown in closed form, not stepped, unless output.trace asks for "
+            "every step), else "
             "\"velocity_verlet\"; "
             "\"velocity_verlet\" (second order); "
             "\"symplectic_euler\" (v += F dt/m, then x += v dt); \"analytic_flight\" (velocity Verlet, with "
