@@ -119,13 +119,16 @@ def test_a_failure_in_flight_writes_the_last_checked_state_bit_for_bit(tmp_path,
     """A blow-up stop goes back to the last copy of the state and replays the steps to the
     last check that passed (RunLoop.fail): the replay flies the flights as the run did,
     so the state written is the one a run ending at that step ends in, to the bit. The
-    guard is made to fail the first check after t = 0.17 s, in the third flight."""
+    guard is made to fail the first check after t = 0.21 s, at the end of the third
+    flight (contacts at 0, 0.102 and 0.204 s); the one copy of the state (the first, at
+    the end of the first flight: later copies are held off) is replayed through the
+    second contact, the second flight and the third contact."""
     from minidem.engine import blowup
 
     real_check, real_fly, replayed = blowup.Guard.check, run_loop.RunLoop.fly, []
 
     def failing_check(self, state, time, gravity_work_max):
-        if time > 0.17:
+        if time > 0.21:
             return blowup.Fault("energy", 0, "made to fail by the test"), gravity_work_max
         return real_check(self, state, time, gravity_work_max)
 
@@ -138,6 +141,9 @@ def test_a_failure_in_flight_writes_the_last_checked_state_bit_for_bit(tmp_path,
     monkeypatch.setattr(blowup.Guard, "check", failing_check)
     monkeypatch.setattr(run_loop.RunLoop, "fly", counted_fly)
     out = tmp_path / "out"
+    # no copy of the state after the first: the replay then runs from t = 0 through the
+    # flights (the copies' schedule otherwise follows wall time)
+    monkeypatch.setattr(run_loop, "SNAPSHOT_COST_RATIO", 1e12)
     with pytest.raises(run_loop.RunFailure):
         simulation.Simulation(scenario.load_scene(OBLIQUE, BOUNCE, out)).run(checkpoints=checkpoint.Policy(out))
     assert sum(replayed) > 0  # the replay flew

@@ -508,17 +508,25 @@ class RunLoop:
             self.fail(sim._fault_message(status, steps), advice)
 
     # -- the loop ----------------------------------------------------------------
-    def next_chunk(self):
-        """(steps, threads, probing) of the next chunk: up to the next multiple of
-        check_steps, frame or checkpoint (the kernel takes the energy samples on its way);
-        a probe of the other thread count runs a short chunk, since it only has to time it."""
+    def next_goal(self, checks=True):
+        """The step the next chunk ends at: the next frame, checkpoint or the end, and with
+        ``checks`` the next multiple of check_steps (a flight, whose states all come from
+        its start, needs no check between: the guard checks where it ends)."""
         steps, loop = self.loop["steps"], self.loop
-        goal = min(self.total_steps, (steps // self.check_steps + 1) * self.check_steps)
+        goal = min(self.total_steps, (steps // self.check_steps + 1) * self.check_steps) if checks else \
+            self.total_steps
         if self.frames_on:
             goal = min(goal, max(steps + 1, self.frame_step(loop["frames"])))
         if self.checkpoint_steps:
             goal = min(goal, (steps // self.checkpoint_steps + 1) * self.checkpoint_steps)
-        chunk = goal - steps
+        return goal
+
+    def next_chunk(self):
+        """(steps, threads, probing) of the next chunk: up to the next multiple of
+        check_steps, frame or checkpoint (the kernel takes the energy samples on its way);
+        a probe of the other thread count runs a short chunk, since it only has to time it."""
+        steps = self.loop["steps"]
+        chunk = self.next_goal() - steps
         chunk_threads = self.loop_threads.choose()
         probing = chunk_threads != self.loop_threads.current
         if probing:
@@ -549,8 +557,11 @@ class RunLoop:
         gravity = self.scene.gravity
         flight = loop["flight"]
         if flight is None:
-            if self.touching():
-                return 0  # a contact lives: the kernel steps it
+            if self.touching() or self.status[0] != kernel.OK or not (
+                    np.isfinite(state.position[0]).all() and np.isfinite(state.velocity[0]).all()):
+                # a contact lives: the kernel steps it; or a fault (a law's NaN force at
+                # the first call) the kernel reports where it happened
+                return 0
             # apart from every plane (for a law acting beyond touch, beyond its reach): no
             # force but gravity, and the kernel has dropped every plane's history
             point, normal = state.planes[0], state.planes[1]
@@ -664,7 +675,8 @@ class RunLoop:
                 steps = loop["steps"]
                 chunk, chunk_threads, probing = self.next_chunk()
                 with _interrupts_deferred():
-                    flown = self.fly(steps, chunk) if self.flies and not completing else 0
+                    flown = self.fly(steps, self.next_goal(checks=False) - steps) if self.flies and not completing \
+                        else 0
                 if flown:
                     taken, needs_rebuild = flown, False
                 else:
