@@ -236,3 +236,22 @@ def test_a_sphere_gliding_on_a_floor_at_zero_overlap_is_flown():
     contact_steps = 1.1 * (result.last_separation_time - result.first_contact_time) / result.dt
     assert result.flown_steps >= result.steps - contact_steps - 3
     assert float(result.position[0, 2]) == 0.02 and result.velocity[0, 0] < 0.0
+
+
+def test_the_frames_of_flown_flights_are_the_stepped_ones(tmp_path):
+    """A ParaView series of the bounce (a frame every 0.01 s): frames fall in flights and
+    are written from flown states. Each frame is at the same time as the stepped run's
+    (velocity Verlet: the same grid) with the same position and velocity but for the
+    stepped run's rounding (1e-8 of the largest, as above)."""
+    runs = {}
+    for name, extra in (("flown", []), ("stepped", ['run.integrator="velocity_verlet"'])):
+        api.run(OBLIQUE, BOUNCE + ["output.vtk=true", "output.interval=0.01", *extra], out=tmp_path / name)
+        runs[name] = api.open_results(tmp_path / name).series
+    flown, stepped = runs["flown"], runs["stepped"]
+    assert len(flown.times) == len(stepped.times) >= 26
+    np.testing.assert_array_equal(flown.times, stepped.times)
+    for (_, frame), (_, reference) in zip(flown, stepped):
+        # scales: the sphere's height (~0.03 m) and its launch speed (0.5 m/s)
+        for got, want, scale in ((frame.points, reference.points, 0.03),
+                                 (frame.point_data["velocity"], reference.point_data["velocity"], 0.5)):
+            np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=0, atol=1e-8 * scale)
