@@ -92,10 +92,12 @@ def test_the_bouncing_ball_keeps_its_energy_and_bounces_on_time(flown_and_steppe
         third_separation, abs=3.0 * contact_time * mass * G / peak_force + flown.dt)
 
 
-def test_a_run_stopped_in_flight_resumes_bit_for_bit(tmp_path):
+def test_a_run_stopped_in_flight_resumes_bit_for_bit(tmp_path, capsys):
     """The flight is planned once and every state in it computed from its start (saved
     in the checkpoint), so a run interrupted in mid-flight and resumed ends with the bits
-    of one that was not, though its chunks cut the flight elsewhere."""
+    of one that was not, though its chunks cut the flight elsewhere. The resumed
+    command's last line counts the steps it took and, of them, those it flew: its part of
+    the run's free_flight_steps (the rest were flown before the checkpoint)."""
     out = tmp_path / "out"
     sim = simulation.Simulation(scenario.load_scene(OBLIQUE, BOUNCE, out))
 
@@ -108,11 +110,17 @@ def test_a_run_stopped_in_flight_resumes_bit_for_bit(tmp_path):
     stopped_at, path = sim.interrupted_at
     arrays, meta = checkpoint.read(path)
     assert 0.11 < stopped_at < 0.2 and meta["loop"]["flight"] is not None  # stopped in a planned flight
-    assert cli.main(["run", str(OBLIQUE), "--out", str(out), "--quiet", "--resume", *as_options(BOUNCE)]) \
-        == cli.EXIT_OK
+    capsys.readouterr()
+    assert cli.main(["run", str(OBLIQUE), "--out", str(out), "--resume", *as_options(BOUNCE)]) == cli.EXIT_OK
+    last = capsys.readouterr().out.strip().splitlines()[-1].strip()
 
     _, got_meta, want_meta = assert_ends_as_uninterrupted(out, OBLIQUE, BOUNCE, tmp_path)
     assert got_meta["loop"]["flown_steps"] == want_meta["loop"]["flown_steps"] > 0.99 * want_meta["step"]
+    here = got_meta["step"] - meta["step"]
+    flown_here = got_meta["loop"]["flown_steps"] - meta["loop"]["flown_steps"]
+    assert 0 < flown_here < here
+    assert last.startswith(f"{here} steps in ") and f"({flown_here} of them flown in closed form)" in last, last
+    assert f"(resumed at step {meta['step']})" in last, last
 
 
 def test_a_failure_in_flight_writes_the_last_checked_state_bit_for_bit(tmp_path, monkeypatch):
