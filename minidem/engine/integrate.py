@@ -77,8 +77,8 @@ def time_to_touch(gap: float, approach_speed: float, approach_acceleration: floa
     that is not closing (c < 0, or c = 0 and b <= 0) is no touch at t = 0: the next root.
 
     Each root in a form free of cancellation: 2 s / (c + sqrt(c^2 + 2 b s)) for a sphere
-    approaching (c > 0), (sqrt(c^2 + 2 b s) - c) / b for one moving away or along the wall
-    and pulled back (c <= 0 < b). The first form for a sphere moving away (a rebound
+    approaching or at rest (c >= 0), (sqrt(c^2 + 2 b s) - c) / b for one moving away and
+    pulled back (c < 0 < b). The first form for a sphere moving away (a rebound
     under gravity: c < 0, s tiny) divides by the difference of two nearly equal numbers:
     15 ms off for a 1.4 m/s rebound 1e-16 m from the wall, inf at 1e-18 m, and the
     flight planned from it passed through the floor.
@@ -89,7 +89,7 @@ def time_to_touch(gap: float, approach_speed: float, approach_acceleration: floa
     if discriminant < 0.0:
         return math.inf  # turns back before reaching the wall
     root = math.sqrt(discriminant)
-    if approach_speed > 0.0:
+    if approach_speed >= 0.0 and approach_speed + root > 0.0:  # (c = 0: a fall from rest, sqrt(2 s / b))
         return 2.0 * gap / (approach_speed + root)
     if approach_acceleration > 0.0:
         return (root - approach_speed) / approach_acceleration

@@ -595,6 +595,16 @@ class RunLoop:
                 energy = 0.5 * (state.mass[0] * np.einsum("sk,sk->s", sample_velocity, sample_velocity)
                                 + state.inertia[0] * float(spin @ spin))
                 self.energy.extend(zip((self.start_time + sample_step * dt).tolist(), energy.tolist()))
+            # the guard's record of the work of gravity at the run's check grid the flight
+            # passes, as stepping checks there (the energy samples are weighed against it).
+            # That work is convex in time (m g.(x0 + v0 t + g t^2/2 - x_initial)): its
+            # largest on the grid steps passed is at the first or the last of them
+            first_grid = (start_step // self.check_steps + 1) * self.check_steps
+            last_grid = (start_step + steps) // self.check_steps * self.check_steps
+            for grid_step in {first_grid, last_grid} if last_grid >= first_grid else ():
+                elapsed = (grid_step - first_step) * dt
+                at_grid = start_position + elapsed * (start_velocity + 0.5 * elapsed * gravity)
+                loop["gravity_work_max"] = self.guard.budget(at_grid[None, :], loop["gravity_work_max"])[1]
             loop["flown_steps"] += steps
         elapsed = (start_step + steps - first_step) * dt
         state.position[0] = start_position + elapsed * (start_velocity + 0.5 * elapsed * gravity)
