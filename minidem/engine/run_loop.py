@@ -318,7 +318,17 @@ class RunLoop:
             self.energy = [(float(t), float(e)) for t, e in arrays["energy"]]
             if self.scene.trace and arrays["trace"].shape[0]:
                 self.trace_chunks.append(arrays["trace"])
-            if self.saves_series:
+            if self.saves_series and meta["frames_series"] is None:
+                # written by a run that wrote no frames (Simulation.run without on_frame):
+                # the series starts at the resumed step, its frames due from there on
+                loop["frames"] = next(index for index in range(loop["frames"], 1 << 62)
+                                      if self.frame_step(index) >= loop["steps"])
+                self.on_frame.restore({"particles": [], "contacts": []}, 0)
+                import warnings
+
+                warnings.warn(f"the checkpoint was written by a run that wrote no VTK frames: the series starts at "
+                              f"t = {self.start_time + loop['steps'] * self.sim.dt:.6g} s, where the run resumes")
+            elif self.saves_series:
                 self.on_frame.restore(meta["frames_series"], loop["frames"])
         meshes = state.meshes[0].shape[0] > 0
         # on a fresh install the engine's shared functions compile in a helper process
