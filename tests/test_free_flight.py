@@ -119,7 +119,8 @@ def test_a_run_stopped_in_flight_resumes_bit_for_bit(tmp_path, capsys):
     here = got_meta["step"] - meta["step"]
     flown_here = got_meta["loop"]["flown_steps"] - meta["loop"]["flown_steps"]
     assert 0 < flown_here < here
-    assert last.startswith(f"{here} steps in ") and f"({flown_here} of them flown in closed form)" in last, last
+    assert last.startswith(f"{here} steps in ") and f": {here - flown_here} stepped, {flown_here} flown in closed form" \
+        in last, last
     assert f"(resumed at step {meta['step']})" in last, last
 
 
