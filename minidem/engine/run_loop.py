@@ -11,6 +11,7 @@ import dataclasses
 import math
 import signal
 import time as wallclock
+import warnings
 from pathlib import Path
 
 import numba
@@ -324,8 +325,6 @@ class RunLoop:
                 loop["frames"] = next(index for index in range(loop["frames"], 1 << 62)
                                       if self.frame_step(index) >= loop["steps"])
                 self.on_frame.restore({"particles": [], "contacts": []}, 0)
-                import warnings
-
                 warnings.warn(f"the checkpoint was written by a run that wrote no VTK frames: the series starts at "
                               f"t = {self.start_time + loop['steps'] * self.sim.dt:.6g} s, where the run resumes")
             elif self.saves_series:
@@ -565,32 +564,9 @@ class RunLoop:
         'not touching before' and times the touch from it."""
         state, loop, dt = self.state, self.loop, self.sim.dt
         gravity = self.scene.gravity
-        flight = loop["flight"]
+        flight = loop["flight"] = loop["flight"] or self.plan_flight(start_step)
         if flight is None:
-            if self.touching() or self.status[0] != kernel.OK or not (
-                    np.isfinite(state.position[0]).all() and np.isfinite(state.velocity[0]).all()):
-                # a contact lives: the kernel steps it; or a fault (a law's NaN force at
-                # the first call) the kernel reports where it happened
-                return 0
-            # apart from every plane (for a law acting beyond touch, beyond its reach): no
-            # force but gravity, and the kernel has dropped every plane's history
-            point, normal = state.planes[0], state.planes[1]
-            position, velocity = state.position[0], state.velocity[0]
-            radius = float(state.particles[8][0])
-            free_time = min((integrate.time_to_touch(
-                float((position - point[w]) @ normal[w]) - radius + float(self.plane_lives_above[w]),
-                -float(velocity @ normal[w]), -float(gravity @ normal[w])) for w in range(point.shape[0])),
-                default=math.inf)
-            # a step or two short of the reach: the kernel steps on from a state still apart
-            end = (self.total_steps if free_time >= (self.total_steps - start_step + 2) * dt
-                   else start_step + int(free_time / dt) - 1)
-            # and apart there, whatever the rounding (halved until it is)
-            while end > start_step and np.any(self.flown_overlaps(end - start_step, position, velocity)
-                                                > self.entry_lives_above()):
-                end = start_step + (end - start_step) // 2
-            if end - start_step < 1:
-                return 0
-            flight = loop["flight"] = (start_step, end, position.tolist(), velocity.tolist())
+            return 0
         first_step, end = flight[0], flight[1]
         steps = min(n_steps, end - start_step)
         if steps < 1:
@@ -626,6 +602,35 @@ class RunLoop:
             self.probe[kernel.PROBE_OVERLAP] = overlap[probe_wall]
         return steps
 
+    def plan_flight(self, start_step):
+        """The flight from the state now (fly's ``loop["flight"]``), or None where there is
+        none: a contact lives, the kernel reported a fault, or the touch is within two steps."""
+        state, dt, gravity = self.state, self.sim.dt, self.scene.gravity
+        if self.touching() or self.status[0] != kernel.OK or not (
+                np.isfinite(state.position[0]).all() and np.isfinite(state.velocity[0]).all()):
+            # a contact lives: the kernel steps it; or a fault (a law's NaN force at the
+            # first call) the kernel reports where it happened
+            return None
+        # apart from every plane (for a law acting beyond touch, beyond its reach): no
+        # force but gravity, and the kernel has dropped every plane's history
+        point, normal = state.planes[0], state.planes[1]
+        position, velocity = state.position[0], state.velocity[0]
+        radius = float(state.particles[8][0])
+        free_time = min((integrate.time_to_touch(
+            float((position - point[w]) @ normal[w]) - radius + float(self.plane_lives_above[w]),
+            -float(velocity @ normal[w]), -float(gravity @ normal[w])) for w in range(point.shape[0])),
+            default=math.inf)
+        # a step or two short of the reach: the kernel steps on from a state still apart
+        end = (self.total_steps if free_time >= (self.total_steps - start_step + 2) * dt
+               else start_step + int(free_time / dt) - 1)
+        # and apart there, whatever the rounding (halved until it is)
+        while end > start_step and np.any(self.flown_overlaps(end - start_step, position, velocity)
+                                            > self.entry_lives_above()):
+            end = start_step + (end - start_step) // 2
+        if end - start_step < 1:
+            return None
+        return (start_step, end, position.tolist(), velocity.tolist())
+
     def entry_lives_above(self):
         """plane_lives_above for each entry of the sphere's list of planes (state.planes)."""
         return self.plane_lives_above[self.state.planes[6]]
@@ -648,7 +653,7 @@ class RunLoop:
         """(steps, stop_at_separation) of a chunk the kernel steps. Where flights are
         flown (fly): in contact or within a law's reach of a plane, until the contact ends
         (the flight after it is then flown); a sphere flying to a touch (fly stopped a
-        step short of the reach) steps the two steps to it."""
+        step or two short of it) steps two steps."""
         if not self.flies:
             return n_steps, self.stop_at_separation
         if self.touching():
@@ -700,13 +705,13 @@ class RunLoop:
                 if flown:
                     taken, needs_rebuild = flown, False
                 else:
+                    loop["flight"] = None  # stepped: a flight after this is planned afresh
+                    chunk, stop = self.stepped(chunk)
                     trace = np.zeros((chunk, len(kernel.TRACE_COLUMNS))) if self.scene.trace else self.no_trace
                     chunk_started = wallclock.perf_counter()
                     # compiled code never sees a signal before it returns anyway: held, a
                     # Ctrl-C is delivered here after the call, never inside numba's dispatcher
                     # (which then returned 'a result with an exception set', a SystemError)
-                    loop["flight"] = None  # stepped: a flight after this is planned afresh
-                    chunk, stop = self.stepped(chunk)
                     with _interrupts_deferred():
                         taken, needs_rebuild = self.call(steps, chunk, completing, trace, chunk_threads, sampled=True,
                                                          stop_at_separation=stop)
