@@ -96,6 +96,14 @@ def time_to_touch(gap: float, approach_speed: float, approach_acceleration: floa
     return math.inf  # moving away or along the wall, never pulled back
 
 
+def ballistic_position(position, velocity, gravity, elapsed: float):
+    """Where free flight under gravity alone takes ``position`` in ``elapsed`` s, starting
+    at ``velocity``: x + t (v + g t / 2), the position velocity Verlet reaches too (exact
+    under a constant force). One expression, so that every flight's states have the same
+    bits wherever they are computed (minidem.engine.run_loop.RunLoop.fly)."""
+    return position + elapsed * (velocity + 0.5 * elapsed * gravity)
+
+
 def flight_to_first_touch(position, velocity, radius, wall_point, wall_normal, gravity):
     """Closed-form ballistic flight of one sphere to its first touch of a plane.
 

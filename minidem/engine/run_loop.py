@@ -589,11 +589,11 @@ class RunLoop:
             last_grid = (start_step + steps) // self.check_steps * self.check_steps
             for grid_step in {first_grid, last_grid} if last_grid >= first_grid else ():
                 elapsed = (grid_step - first_step) * dt
-                at_grid = start_position + elapsed * (start_velocity + 0.5 * elapsed * gravity)
+                at_grid = integrate.ballistic_position(start_position, start_velocity, gravity, elapsed)
                 loop["gravity_work_max"] = self.guard.budget(at_grid[None, :], loop["gravity_work_max"])[1]
             loop["flown_steps"] += steps
         elapsed = (start_step + steps - first_step) * dt
-        state.position[0] = start_position + elapsed * (start_velocity + 0.5 * elapsed * gravity)
+        state.position[0] = integrate.ballistic_position(start_position, start_velocity, gravity, elapsed)
         state.velocity[0] = start_velocity + elapsed * gravity
         overlap = state.planes[4]
         overlap[:] = state.plane_overlaps(*state.planes[5:7])
@@ -644,8 +644,7 @@ class RunLoop:
     def flown_overlaps(self, steps, position, velocity):
         """The overlap with each entry's plane after ``steps`` steps of free flight from
         ``position``, ``velocity`` (as State.plane_overlaps computes it)."""
-        elapsed = steps * self.sim.dt
-        moved = position + elapsed * (velocity + 0.5 * elapsed * self.scene.gravity)
+        moved = integrate.ballistic_position(position, velocity, self.scene.gravity, steps * self.sim.dt)
         point, normal, planes = self.state.planes[0], self.state.planes[1], self.state.planes[6]
         return float(self.state.particles[8][0]) - np.einsum("ek,ek->e", moved - point[planes], normal[planes])
 

@@ -230,16 +230,25 @@ def model_only(rounds: int, steps_per_contact: int = DEFAULT_STEPS_PER_CONTACT, 
                                                f"run.steps_per_contact={steps_per_contact}", *settings])
         result = simulation.Simulation(scene, kernel_flags=flags).run()  # compile or load, warm up
         cases.append((label, scene, flags, analysis.summary(result)))
-    wall = {label: [] for label, *_ in cases}
-    cpu = {label: [] for label, *_ in cases}
-    for _ in range(rounds):
-        for label, scene, flags, _ in cases:
-            started, started_cpu = time.perf_counter(), time.process_time()
-            simulation.Simulation(scene, kernel_flags=flags).run()
-            wall[label].append(time.perf_counter() - started)
-            cpu[label].append(time.process_time() - started_cpu)
+    wall, cpu = _interleaved({label: (lambda scene=scene, flags=flags: simulation.Simulation(
+        scene, kernel_flags=flags).run()) for label, scene, flags, _ in cases}, rounds)
     return [(label, summary["steps"], statistics.median(wall[label]), statistics.median(cpu[label]), summary["et"])
             for label, _, _, summary in cases]
+
+
+def _interleaved(runs: dict, rounds: int) -> tuple[dict, dict]:
+    """({name: wall s per round}, {name: CPU s per round}) of the callables ``runs``,
+    each called once per round in turn, so that a change in the machine's load hits
+    them all alike."""
+    wall = {name: [] for name in runs}
+    cpu = {name: [] for name in runs}
+    for _ in range(rounds):
+        for name, run in runs.items():
+            started, started_cpu = time.perf_counter(), time.process_time()
+            run()
+            wall[name].append(time.perf_counter() - started)
+            cpu[name].append(time.process_time() - started_cpu)
+    return wall, cpu
 
 
 # (label, scenario settings): scenes with free flight after a contact, run flown
@@ -267,12 +276,8 @@ def free_flight(rounds: int) -> list:
         scenes = {kind: scenario.load_scene(SCENARIO, [*settings, f'run.integrator="{integrator}"'])
                   for kind, integrator in (("flown", "analytic_flight"), ("stepped", "velocity_verlet"))}
         results = {kind: simulation.Simulation(scene).run() for kind, scene in scenes.items()}  # compile, warm up
-        wall = {kind: [] for kind in scenes}
-        for _ in range(rounds):
-            for kind, scene in scenes.items():
-                started = time.perf_counter()
-                simulation.Simulation(scene).run()
-                wall[kind].append(time.perf_counter() - started)
+        wall, _ = _interleaved({kind: (lambda scene=scene: simulation.Simulation(scene).run())
+                                for kind, scene in scenes.items()}, rounds)
         flown, stepped = results["flown"], results["stepped"]
         difference = float(np.abs(flown.position - stepped.position).max() / np.abs(stepped.position).max())
         rows.append((label, flown.steps, flown.flown_steps, statistics.median(wall["flown"]),
