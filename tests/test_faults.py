@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import signal
 import subprocess
 import sys
@@ -29,7 +30,7 @@ from minidem import cli
 from minidem.engine import blowup
 from minidem.scene import scenario
 from minidem.engine import run_loop, simulation
-from minidem.engine.state import State
+from minidem.engine.state import State, StateCopy
 from minidem.engine import checkpoint
 
 SETTLE = REPO / "scenarios" / "bench" / "settle.toml"
@@ -239,26 +240,29 @@ def test_a_ctrl_c_during_a_copy_checkpoints_a_whole_state(tmp_path, monkeypatch)
         return scenario.load_scene(REPO / "scenarios" / "newtons_cradle.toml", ["run.end_time=2e-4"], "-")
 
     reference = simulation.Simulation(load()).run()
-    original, copies = State.capture, []
+    original, copies = State.capture_items, []
 
-    def capture(self, into=None):
-        out = original(self, into)
+    def capture_items(self):
+        yield from original(self)
         copies.append(self.position.copy())
         if len(copies) == 3:  # a copy in the loop, overwriting the last good state
             signal.raise_signal(signal.SIGINT)
-        return out
 
-    monkeypatch.setattr(State, "capture", capture)
+    monkeypatch.setattr(State, "capture_items", capture_items)
     with pytest.raises(KeyboardInterrupt):
         simulation.Simulation(load()).run(checkpoints=checkpoint.Policy(tmp_path, interval=2e-5), chunk_steps=100)
-    monkeypatch.setattr(State, "capture", original)
+    monkeypatch.setattr(State, "capture_items", original)
     arrays, meta = checkpoint.read(tmp_path / checkpoint.CHECKPOINT)
     assert np.array_equal(arrays["position"], copies[2])  # the newest copy, with its own step count:
     sim = simulation.Simulation(load())
-    resumed = sim.run(resume_from=checkpoint.load_for_resume(sim, tmp_path))
+    loaded = checkpoint.load_for_resume(sim, tmp_path)
+    resumed = sim.run(resume_from=loaded)
     assert resumed.steps == reference.steps
     assert np.array_equal(resumed.position, reference.position)
     assert np.array_equal(resumed.velocity, reference.velocity)
+    # the file's arrays were released once restored (not held beside the live state for the
+    # whole run); the meta, which the CLI reports from, is left
+    assert loaded[0] == {} and loaded[1]["step"] == meta["step"]
 
 
 def test_blow_up_stops_with_the_last_good_state_and_a_time_step_to_try(tmp_path):
@@ -435,6 +439,7 @@ def install_plugin(tmp_path, distribution: str, version: str, entry_point: str, 
 PLUGIN_MODULE = '''
 """Linear normal spring, incremental linear tangential spring capped at mu Fn; no damping."""
 import math
+import os
 
 import numba
 
@@ -520,6 +525,7 @@ def test_a_plugin_written_outside_the_repository_is_installed_listed_run_and_ver
 HELPER_PLUGIN_LAW = '''
 """A linear normal spring whose stiffness factor comes from a helper in a subpackage."""
 import math
+import os
 
 import numba
 
@@ -658,3 +664,108 @@ def test_a_checkpoint_of_a_run_without_frames_resumes_with_a_series_from_there(t
     got, _ = checkpoint.read(out / checkpoint.FINAL_STATE)
     for name in ("position", "velocity", "angular_velocity"):
         assert np.array_equal(got[name], getattr(reference, name)), name
+
+
+# -- the last good state in a file (minidem.engine.state.StateCopy) ----------------------
+SMALL_BLOW_UP = SMALL_SETTLE + ["run.end_time=0.5", "run.dt=2e-4", "run.allow_unstable_dt=true"]  # fails at step 60
+
+
+def copy_every_chunk(monkeypatch):
+    # a copy of the last good state after every chunk that passed the checks, so that a
+    # run of a few hundred steps makes many (a run copies at most every 200,000 particle-steps)
+    monkeypatch.setattr(run_loop, "SNAPSHOT_STEPS", 1)
+    monkeypatch.setattr(run_loop, "SNAPSHOT_PARTICLE_STEPS", 1)
+    monkeypatch.setattr(run_loop, "SNAPSHOT_COST_RATIO", 0)
+
+
+def unnamed_files_in(directory):
+    """(descriptor, size) of this process's open files in ``directory`` that have no name."""
+    found = []
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+            if target.startswith(str(directory) + "/") and target.endswith("(deleted)"):
+                found.append((int(fd), os.fstat(int(fd)).st_size))
+        except OSError:
+            pass
+    return found
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="reads the process's open files from /proc")
+def test_the_last_good_state_is_an_unnamed_file_in_the_output_directory(tmp_path, monkeypatch):
+    """The copy is written to the run's directory, not held in memory (30 % of a settled
+    pile's memory, docs/benchmarks.md), has no name there while the run holds it, and is
+    gone when the run ends."""
+    copy_every_chunk(monkeypatch)
+    sim = simulation.Simulation(scenario.load_scene(SETTLE, SMALL_SETTLE + ["run.end_time=0.02"], "-"))
+    seen = []
+    sim.run(checkpoints=checkpoint.Policy(tmp_path), chunk_steps=50,
+            progress=lambda steps, total, contacts: seen.append(unnamed_files_in(tmp_path)))
+    # the particle arrays alone (position, velocity, spin, force, torque, position at build)
+    particle_bytes = 6 * sim.state.position.nbytes
+    assert len(seen) > 5 and all(len(files) == 1 and files[0][1] > particle_bytes for files in seen), seen
+    assert unnamed_files_in(tmp_path) == []
+    assert sorted(path.name for path in tmp_path.iterdir()) == [checkpoint.FINAL_STATE]
+
+
+def test_a_copy_read_back_from_its_file_is_the_state_bit_for_bit(tmp_path):
+    sim = simulation.Simulation(scenario.load_scene(SETTLE, SMALL_SETTLE + ["run.end_time=0.1"], "-"))
+    sim.run()
+    copy = StateCopy(tmp_path)
+    for _ in range(2):  # a second write replaces the first
+        copy.write(sim.state.capture_items)
+    got, want = copy.read(), sim.state.capture()
+    copy.close()
+    assert want["pair_reaction@rows"].size > 100  # a pile: the touching pairs are in the copy
+    assert got.keys() == want.keys()
+    for name in want:
+        assert got[name].dtype == want[name].dtype and got[name].shape == want[name].shape, name
+        assert got[name].tobytes() == want[name].tobytes(), name
+
+
+class _FullDisk:
+    """A temporary file whose writes fail (ENOSPC) from the ``fail_at``-th on."""
+
+    def __init__(self, make_file, fail_at, writes):
+        self.file, self.fail_at, self.writes = make_file(), fail_at, writes
+
+    def write(self, data):
+        self.writes.append(len(data))
+        if len(self.writes) >= self.fail_at:
+            raise OSError(28, "No space left on device")
+        return self.file.write(data)
+
+    def __getattr__(self, name):
+        return getattr(self.file, name)
+
+
+def test_a_full_disk_keeps_the_last_good_state_in_memory_and_the_blow_up_restores_it(tmp_path, monkeypatch):
+    """A copy whose file fails half-way (a full disk) is kept in memory from then on, with a
+    warning; the run goes on, and the blow-up restores and writes the same last good state
+    as with the file, bit for bit."""
+    from minidem.engine import state as state_module
+
+    copy_every_chunk(monkeypatch)
+
+    def blow_up(out):
+        sim = simulation.Simulation(scenario.load_scene(SETTLE, SMALL_BLOW_UP, "-"))
+        with pytest.raises(run_loop.RunFailure) as failure:
+            sim.run(checkpoints=checkpoint.Policy(out), chunk_steps=20)
+        return str(failure.value), sim.state.capture(), checkpoint.read(out / checkpoint.LAST_GOOD)[0]
+
+    (tmp_path / "file").mkdir()
+    message, state, written = blow_up(tmp_path / "file")
+    assert int(message.split("Last good state: step ")[1].split()[0]) > 20  # copies in the loop
+    writes = []
+    make_file = state_module.tempfile.TemporaryFile
+    monkeypatch.setattr(state_module.tempfile, "TemporaryFile", lambda **kw: _FullDisk(make_file, 70, writes))
+    (tmp_path / "memory").mkdir()
+    with pytest.warns(UserWarning, match="cannot keep the last good state in a temporary file in .*memory "
+                                          r"\(No space left on device\): it is kept in memory instead"):
+        got_message, got_state, got_written = blow_up(tmp_path / "memory")
+    assert len(writes) == 70  # the file failed once, in the middle of a copy after the first
+    assert got_message == message.replace(str(tmp_path / "file"), str(tmp_path / "memory"))
+    for name in state:
+        assert got_state[name].tobytes() == state[name].tobytes(), name
+    for name in written:
+        assert got_written[name].tobytes() == written[name].tobytes(), name

@@ -124,20 +124,19 @@ def interrupted_then_resumed(tmp_path, monkeypatch, scene, copies: int, interval
     good state, with checkpoints every ``interval`` s; then --resume. Returns (the run left
     alone, the resumed run, the checkpoint's arrays, the state's sorts at the last copy)."""
     reference = simulation.Simulation(scene()).run()
-    original, sorts = State.capture, []
+    original, sorts = State.capture_items, []
 
-    def capture(self, into=None):
-        out = original(self, into)
+    def capture_items(self):
+        yield from original(self)
         sorts.append(self.sorts)
         if len(sorts) == copies:
             signal.raise_signal(signal.SIGINT)
-        return out
 
-    monkeypatch.setattr(State, "capture", capture)
+    monkeypatch.setattr(State, "capture_items", capture_items)
     with pytest.raises(KeyboardInterrupt):
         simulation.Simulation(scene()).run(checkpoints=checkpoint.Policy(tmp_path, interval=interval),
                                            chunk_steps=chunk_steps)
-    monkeypatch.setattr(State, "capture", original)
+    monkeypatch.setattr(State, "capture_items", original)
     arrays, meta = checkpoint.read(tmp_path / checkpoint.CHECKPOINT)
     assert 0 < meta["step"] < reference.steps
     sim = simulation.Simulation(scene())
@@ -383,13 +382,13 @@ def test_a_ctrl_c_checkpoint_from_a_copy_older_than_a_sort_resumes_bit_for_bit(t
     reversing_every_build(monkeypatch)
     reference = simulation.Simulation(polydisperse_pile()).run()
     sorts_at_copy = []
-    original = State.capture
+    original = State.capture_items
 
-    def capture(self, into=None):
+    def capture_items(self):
         sorts_at_copy.append(self.sorts)
-        return original(self, into)
+        return original(self)
 
-    monkeypatch.setattr(State, "capture", capture)
+    monkeypatch.setattr(State, "capture_items", capture_items)
     sim = simulation.Simulation(polydisperse_pile())
 
     def progress(steps, total, contacts):
@@ -398,7 +397,7 @@ def test_a_ctrl_c_checkpoint_from_a_copy_older_than_a_sort_resumes_bit_for_bit(t
 
     with pytest.raises(KeyboardInterrupt):
         sim.run(progress=progress, checkpoints=checkpoint.Policy(tmp_path, interval=1.0), chunk_steps=50)
-    monkeypatch.setattr(State, "capture", original)
+    monkeypatch.setattr(State, "capture_items", original)
     resumed_sim = simulation.Simulation(polydisperse_pile())
     resumed = resumed_sim.run(resume_from=checkpoint.load_for_resume(resumed_sim, tmp_path))
     for name in ("position", "velocity", "angular_velocity"):

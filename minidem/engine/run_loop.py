@@ -22,7 +22,7 @@ from minidem.contact import declarations, laws
 from minidem.engine import blocks, integrate, kernel, warmup
 from minidem.engine.law_signature import law_error
 from minidem.engine.notices import notice_if_slow
-from minidem.engine.state import LISTS, State, full_arrays
+from minidem.engine.state import LISTS, State, StateCopy, full_arrays
 from minidem.errors import MinidemError
 from minidem.scene.scenario import Scene, ScenarioError
 
@@ -234,7 +234,7 @@ class RunLoop:
             self.plane_lives_above = (-sim.constants[rows, -1] if sim.law.reach is not None
                                       else np.zeros(rows.shape[0]))
         self.energy, self.trace_chunks = [], []
-        self.resume_from = resume_from
+        self.resume_from, self.resumed = resume_from, resume_from is not None
 
     @property
     def scene(self) -> Scene:
@@ -329,6 +329,11 @@ class RunLoop:
                               f"t = {self.start_time + loop['steps'] * self.sim.dt:.6g} s, where the run resumes")
             elif self.saves_series:
                 self.on_frame.restore(meta["frames_series"], loop["frames"])
+            # restored: the file's arrays (every row of every history, the lists) are
+            # released, not held beside the live state for the whole run (the caller keeps
+            # the meta)
+            arrays.clear()
+            self.resume_from = None
         meshes = state.meshes[0].shape[0] > 0
         # on a fresh install the engine's shared functions compile in a helper process
         # beside the kernel (nothing is started when they are cached); or, when a helper
@@ -356,7 +361,7 @@ class RunLoop:
                     self.compile_kernel()
                 sim.check_history_bounds()  # a plugin's law, once per kernel
                 helper.wait()
-                if self.resume_from is None and (sim.pairs or meshes):
+                if not self.resumed and (sim.pairs or meshes):
                     sim.rebuild(state)
                 self.first_call()
         except (numba.core.errors.NumbaError, ValueError, TypeError) as exc:
@@ -376,7 +381,7 @@ class RunLoop:
             # garbage collector ('warning: unclosed file')
             with _interrupts_deferred():
                 helper.stop()
-        if self.resume_from is None:
+        if not self.resumed:
             self.energy.append((self.start_time, state.kinetic_energy(state.inertia)))
             if self.frames_on:
                 if self.flight_frames:
@@ -391,7 +396,7 @@ class RunLoop:
 
     def first_call(self):
         """The first compiled call: the initial forces, or the resumed state checked."""
-        if self.resume_from is None:
+        if not self.resumed:
             # zero-length step: initial forces (dt = 0, so no displacement increments)
             # and the closing kick (of zero), no drift; advance with dt = 0 and the
             # step's drift marked done, since calling compute_forces from Python
@@ -407,24 +412,33 @@ class RunLoop:
         self.checked, self.checked_counts = dict(self.loop), (len(self.energy), len(self.trace_chunks))
 
     def snapshot(self, reuse=None, live=False):
-        """The state now, for checkpoints and as the last good state; ``reuse``: an
-        older snapshot, overwritten in place (one copy of the state, not two); ``live``:
-        the state's own arrays, not copied (valid until the kernel runs again). The
-        arrays and the loop's bookkeeping are recorded together with SIGINT/SIGTERM
-        held, so an interrupt never finds them from two different steps."""
+        """The state now, for checkpoints and as the last good state: a copy in a file
+        (:class:`StateCopy`); ``reuse``: an older snapshot, its file overwritten (one
+        copy of the state, not two); ``live``: the state's own arrays, not copied (valid
+        until the kernel runs again). The arrays and the loop's bookkeeping are recorded
+        together with SIGINT/SIGTERM held, so an interrupt never finds them from two
+        different steps."""
         with _interrupts_deferred():
             snap = {} if reuse is None else reuse
-            snap["arrays"] = (self.state.live_arrays() if live else
-                              self.state.capture(into=reuse["arrays"] if reuse else None))
+            if live:
+                snap["arrays"] = self.state.live_arrays()
+            else:
+                if reuse is None:
+                    # beside the run's other files (its disk), else the system's temporary directory
+                    directory = self.policy.directory if self.policy is not None else None
+                    snap["arrays"] = StateCopy(directory if directory and Path(directory).is_dir() else None)
+                snap["arrays"].write(self.state.capture_items)
             snap.update(tracking=(self.probe.copy(), self.stats.copy(), self.status.copy()), loop=dict(self.loop),
                         energy=len(self.energy), trace=len(self.trace_chunks))
         return snap
 
     def write_state(self, name, snap, kind):
         sim = self.sim
-        arrays = full_arrays(snap["arrays"])  # the files hold every row
+        captured = snapshot_arrays(snap)
+        arrays = full_arrays(captured)  # the files hold every row
         if not all(listed in arrays for listed in LISTS):  # and the lists (a capture holds none)
-            arrays.update(self.state.lists_of(snap["arrays"]))
+            arrays.update(self.state.lists_of(captured))
+        del captured
         arrays["probe"], arrays["stats"], arrays["status"] = snap["tracking"]
         arrays["energy"] = np.array(self.energy[:snap["energy"]], dtype=np.float64).reshape(-1, 2)
         arrays["trace"] = np.concatenate(self.trace_chunks[:snap["trace"]]) if snap["trace"] else self.no_trace
@@ -444,8 +458,10 @@ class RunLoop:
         That state is rebuilt from the last copy (``good``) by replaying the steps
         in between: runs are deterministic, so the replay gives it bit for bit."""
         sim, state, good, checked = self.sim, self.state, self.good, self.checked
-        sim.use_order(state, good["arrays"].get("particle_id"))
-        state.restore(good["arrays"])
+        arrays = snapshot_arrays(good)
+        sim.use_order(state, arrays.get("particle_id"))
+        state.restore(arrays)
+        del arrays
         for live, saved in zip((self.probe, self.stats, self.status), good["tracking"]):
             live[:] = saved
         step, completing = good["loop"]["steps"], False
@@ -461,8 +477,8 @@ class RunLoop:
             if needs_rebuild:
                 sim.rebuild(state)
                 completing = True
-        # into the copy it was restored from, no longer needed: one copy of the state, not two
-        last_good = self.snapshot(good)
+        # the state now is the last good one: written from the live arrays, no copy
+        last_good = self.snapshot(live=True)
         last_good["loop"] = dict(checked)
         last_good["energy"], last_good["trace"] = self.checked_counts
         good_step = checked["steps"]
@@ -688,6 +704,18 @@ class RunLoop:
         return separating
 
     def run(self) -> RunResult:
+        try:
+            return self.run_loop()
+        finally:
+            self.release_good()
+
+    def release_good(self):
+        """Close the last good copy's file (and free it): nothing restores from it now."""
+        good, self.good = getattr(self, "good", None), None
+        if good is not None and isinstance(good["arrays"], StateCopy):
+            good["arrays"].close()
+
+    def run_loop(self) -> RunResult:
         sim, state, loop, policy = self.sim, self.state, self.loop, self.policy
         self.start()
         started = wallclock.perf_counter()
@@ -740,8 +768,8 @@ class RunLoop:
                     self.good = self.snapshot(self.good)
                     copied_wall = wallclock.perf_counter()
                     copy_seconds = copied_wall - now_wall
-                if checkpoint_due:
-                    self.write_state(self.checkpoint.CHECKPOINT, self.good, "checkpoint")
+                if checkpoint_due:  # the state the last good copy was just taken of, as it is
+                    self.write_state(self.checkpoint.CHECKPOINT, self.snapshot(live=True), "checkpoint")
                     last_checkpoint_wall = wallclock.perf_counter()
                 if separating:
                     separated = True
@@ -759,7 +787,7 @@ class RunLoop:
             # the state's own arrays, not a copy, and the last good copy released first (the
             # run is over: nothing restores from it now): a second and third copy of the
             # state were the peak of a run that writes its final state
-            self.good = None
+            self.release_good()
             self.write_state(self.checkpoint.FINAL_STATE, self.snapshot(live=True), "final")
             Path(policy.path).unlink(missing_ok=True)  # the run is complete: nothing to resume
         return self.result(separated, wall_time)
@@ -828,6 +856,12 @@ def _interrupts_deferred():
             signal.signal(number, handler if handler is not None else signal.SIG_DFL)
         if caught:  # now, to the handlers the run had (KeyboardInterrupt, or the CLI's SIGTERM)
             signal.raise_signal(caught[0])
+
+
+def snapshot_arrays(snap) -> dict:
+    """The arrays of a snapshot (RunLoop.snapshot): its copy read back from the file, or
+    the live arrays it refers to."""
+    return snap["arrays"].read() if isinstance(snap["arrays"], StateCopy) else snap["arrays"]
 
 
 def interrupted(exc: BaseException) -> bool:

@@ -763,7 +763,9 @@ class Simulation:
         checkpoints: a :class:`minidem.engine.checkpoint.Policy` (where and how often to
         write checkpoints; the final state, the last good state of a failed run), or None
         to write no file. resume_from: (arrays, meta) of a checkpoint
-        (:func:`minidem.engine.checkpoint.load_for_resume`): continue from it, bit for bit.
+        (:func:`minidem.engine.checkpoint.load_for_resume`): continue from it, bit for bit;
+        its arrays dict is emptied once they are restored (a resumed run holds no second
+        copy of the state), its meta is left as it was.
 
         Raises :class:`RunFailure` on a blow-up (see :mod:`minidem.engine.blowup`), after
         restoring ``self.state`` to the last good state (and writing it, with checkpoints).

@@ -3,13 +3,17 @@ the copies of them a run keeps: the last good state, checkpoints and the final s
 
 A :class:`minidem.engine.simulation.Simulation` makes one per run; the run loop
 (:mod:`minidem.engine.run_loop`) hands its tuples to the kernel, copies them between
-chunks (:meth:`State.capture`) and puts a copy back after a failure or on resume
+chunks into a file (:meth:`State.capture_items`, :class:`StateCopy`) and puts a copy back
+after a failure or on resume
 (:meth:`State.restore`), bit for bit.
 """
 
 from __future__ import annotations
 
+import io
 import mmap
+import tempfile
+import warnings
 
 import numpy as np
 
@@ -39,7 +43,7 @@ PAIR_TUPLE = _STATE_TUPLES["pairs"]  # one name (or None) for each array of the 
 
 # per-contact arrays whose rows are all zero while the contact is not touching (a contact
 # that ends drops its history and its reaction): the last good state keeps only the rows
-# in use (State.capture)
+# in use (State.capture_items)
 _SPARSE_ROWS = ("plane_history", "cylinder_history", "mesh_history", "pair_history", "pair_reaction",
                 "pair_reaction_in_use")
 # The Verlet lists follow from the position at the last build (State.build_lists: the
@@ -152,6 +156,78 @@ def pair_arrays(offsets, partners, history, overlap, slot, reverse_offsets):
     return (offsets, partners, history, overlap, np.zeros((partners.shape[0], 3)), slot, reverse_offsets,
             np.zeros(partners.shape[0], dtype=np.uint8), np.zeros(offsets.shape[0] - 1, dtype=np.uint8),
             untouched_zeros(partners.shape[0], 3))
+
+
+class StateCopy:
+    """A copy of the state (:meth:`State.capture_items`) kept in a file, not in memory: the
+    last good state of a run (:class:`minidem.engine.run_loop.RunLoop`), which a blow-up
+    restores and Ctrl-C writes as the checkpoint, and nothing reads otherwise.
+
+    Held in memory, that copy was the largest thing a run kept besides its live state: the
+    particle arrays again (144 bytes a particle) and the touching contacts' histories and
+    reactions (about 150 bytes a particle in a settled pile), 30 % of the run's memory
+    (docs/benchmarks.md, "The last good copy in a file"). In a file it costs disk, and
+    memory only as the system's page cache, which the system gives up when memory runs
+    short (anonymous memory it cannot, without swap). The file has no name (an unlinked
+    temporary file in ``directory``: the run's output directory, else the system's
+    temporary directory), so nothing is left behind, whatever ends the process.
+
+    Each :meth:`write` replaces the copy: the items are streamed in, one array at a time
+    (``.npy`` records one after another), never all of them in memory at once. If the
+    file cannot be made or written (no such directory, a full disk), the copy is kept in
+    memory from then on, with a warning: the run goes on as before.
+    """
+
+    def __init__(self, directory=None):
+        self.directory = directory
+        self.handle = None
+        self.offsets: dict[str, int] = {}
+
+    def write(self, items) -> None:
+        """Replace the copy by ``items()`` (a callable giving (name, array) pairs, as
+        :meth:`State.capture_items`; called again if the file fails half-way)."""
+        if self.handle is None:
+            try:
+                self.handle = tempfile.TemporaryFile(dir=self.directory, prefix=".minidem-last-good-")
+            except OSError as exc:
+                self.handle = self._in_memory(exc)
+        try:
+            self._write(items())
+        except OSError as exc:
+            if isinstance(self.handle, io.BytesIO):
+                raise
+            self.close()
+            self.handle = self._in_memory(exc)
+            self._write(items())
+
+    def _write(self, items) -> None:
+        handle = self.handle
+        handle.seek(0)
+        handle.truncate()
+        self.offsets = {}
+        for name, array in items:
+            self.offsets[name] = handle.tell()
+            np.lib.format.write_array(handle, np.asarray(array, order="C"), allow_pickle=False)
+        handle.flush()
+
+    def read(self) -> dict[str, np.ndarray]:
+        """The copy, as :meth:`State.capture` gives it."""
+        handle, arrays = self.handle, {}
+        for name, offset in self.offsets.items():
+            handle.seek(offset)
+            arrays[name] = np.lib.format.read_array(handle, allow_pickle=False)
+        return arrays
+
+    def close(self) -> None:
+        if self.handle is not None:
+            self.handle.close()
+            self.handle = None
+
+    def _in_memory(self, exc: OSError) -> io.BytesIO:
+        where = self.directory or tempfile.gettempdir()
+        warnings.warn(f"cannot keep the last good state in a temporary file in {where} ({exc.strerror or exc}): "
+                      "it is kept in memory instead", stacklevel=3)
+        return io.BytesIO()
 
 
 class State:
@@ -326,47 +402,35 @@ class State:
         return np.column_stack([i, j]), np.einsum("mk,mk->m", reaction[slot[touching], :3], normal)
 
     # -- checkpoints -------------------------------------------------------------
-    def capture(self, into: dict | None = None) -> dict[str, np.ndarray]:
+    def capture(self) -> dict[str, np.ndarray]:
         """Copies of every array the kernel carries from one step to the next (the contact
         histories exactly as they are, rows aligned with the lists at the position at
         build); the Verlet lists not at all (``LISTS``: :meth:`restore` makes them
-        again from the position at build, :meth:`lists_of` for a file).
+        again from the position at build, :meth:`lists_of` for a file). What
+        :meth:`capture_items` gives, copied: the last good state of a run is those items
+        written into a file instead (:class:`StateCopy`)."""
+        return {name: np.array(array) for name, array in self.capture_items()}
 
-        ``into``: an earlier capture, overwritten in place and returned: its arrays are
-        reused where their shapes still fit (a copy into existing memory is ten times
-        cheaper than a new allocation), and one that no longer fits is released before
-        its replacement is allocated, so that a run never holds two old copies.
+    def capture_items(self):
+        """(name, array) of everything a copy of the state holds, one at a time: the live
+        arrays themselves where they are kept whole (valid until the kernel runs again),
+        so that a writer streams them without holding a second copy.
 
-        The per-contact histories and reactions (``_SPARSE_ROWS``) are kept as their
-        non-zero rows only (see :func:`_sparse_rows`): a row is zero while its
-        wall or pair is not touching, most of them in a pile (a sphere of the settle
-        scene touches no wall, and about two in three of its listed pairs are apart),
-        so the last good state costs about half the memory of the live one.
+        The per-contact histories and reactions (``_SPARSE_ROWS``) are given as their
+        non-zero rows only (see :func:`_sparse_rows`), each made when it is asked for: a
+        row is zero while its wall or pair is not touching, most of them in a pile (a
+        sphere of the settle scene touches no wall, and about half of its listed pairs
+        are apart), so the copy is about half the size of the live state.
         :meth:`restore` and :func:`full_arrays` (what a checkpoint file holds) give the
         same bits back.
         """
-        live = self.live_arrays()
-        del live["builds"]
-        arrays = {} if into is None else into
-        for name, array in live.items():
-            target = arrays.pop(name, None)
+        for name, array in self.live_arrays().items():
             if name in LISTS:
-                del target
-            elif name in _SPARSE_ROWS:
-                del target
-                for part in _SPARSE_PARTS:
-                    arrays.pop(name + part, None)  # the old copy goes before the new one is made
-                arrays.update(_sparse_rows(name, array))
-            elif target is not None and target.shape == array.shape and target.dtype == array.dtype:
-                np.copyto(target, array)
-                arrays[name] = target
+                continue
+            if name in _SPARSE_ROWS:
+                yield from _sparse_rows(name, array).items()
             else:
-                del target
-                for part in _SPARSE_PARTS:
-                    arrays.pop(name + part, None)
-                arrays[name] = array.copy()
-        arrays["builds"] = np.array(self.builds, dtype=np.int64)
-        return arrays
+                yield name, array
 
     def live_arrays(self) -> dict[str, np.ndarray]:
         """The arrays :meth:`capture` copies, as they are (no copy: for a file written
