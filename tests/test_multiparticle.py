@@ -700,6 +700,34 @@ def test_a_one_thread_run_stores_the_pairs_forces_and_never_the_partners_torques
     assert not reaction[slot[~touching]].any()
 
 
+def test_one_thread_stores_the_pairs_forces_only_where_the_run_reads_the_state():
+    # The contact forces of touching pairs are stored (kernel.advance's store_reactions)
+    # only at a state the run reads: a frame, a copy of the last good state, a checkpoint,
+    # the end. Between a list build and such a state, on one thread, no reaction row is
+    # written and (on a mapping of their own, State.untouched_zeros) none of their pages is
+    # resident: 116 bytes a particle of the settled pile at 200,000 (docs/benchmarks.md,
+    # "Reactions stored where they are read"). Frames every 0.01 s: their states hold
+    # every touching pair's force.
+    sim = simulation.Simulation(scenario.load_scene(
+        "scenarios/bench/settle.toml", DEEP_PILE[1:] + ["fill.0.count=100", "run.end_time=0.03", "run.threads=1"]))
+    unread, frames = [], []
+
+    def progress(steps, total, contacts):
+        offsets, partners, history, overlap, reaction, slot, _, in_use = sim.state.pairs[:8]
+        touching = overlap > 0.0
+        if touching.sum() > 5 and not in_use.any():
+            unread.append(resident_pages(reaction) if sys.platform == "linux" else 0)
+
+    def on_frame(time, state):
+        overlap, reaction, slot = state.pairs[3], state.pairs[4], state.pairs[5]
+        touching = overlap > 0.0
+        frames.append((touching.sum(), bool((reaction[slot[touching]] != 0.0).any(axis=1).all())))
+
+    sim.run(progress=progress, on_frame=on_frame)
+    assert len(unread) >= 3 and max(unread) == 0, unread
+    assert len(frames) == 4 and frames[-1][0] > 20 and all(stored for _, stored in frames), frames
+
+
 def test_same_bits_on_one_and_two_threads(monkeypatch):
     if numba.config.NUMBA_NUM_THREADS < 2:
         pytest.skip("needs two threads")

@@ -579,7 +579,7 @@ def settle_group(group_first, group_stop, partial_at, first, last, particles, pa
     (offsets, neighbours, pair_history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use,
      reaction_pending, partner_torque) = pairs
     tile, tile_history, response, tile_entry, tile_row, own, own_count, tile_end = scratch
-    first_partner, drift_on, position_at_build, half_skin_squared, energy_step = finishing
+    first_partner, drift_on, position_at_build, half_skin_squared, step_records = finishing
     # the tile's contacts: up to the group's last particle's end (read from the array,
     # not passed: a literal 0 at one call would compile this function twice)
     n_tile = tile_end[group_stop - 1 - group_first] if group_stop > group_first else 0
@@ -648,13 +648,13 @@ def settle_group(group_first, group_stop, partial_at, first, last, particles, pa
             continue
         active += acc[6]
         moved_too_far += finish_range(i, i + 1, last, first_partner, particles, pairs, dt, drift_on,
-                                      position_at_build, half_skin_squared, energy_step, True, acc, first)
+                                      position_at_build, half_skin_squared, step_records, True, acc, first)
     return active, moved_too_far
 
 
 @numba.njit(cache=True, error_model="numpy", fastmath=FAST, inline=INLINE)
 def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking,
-                first_partner, drift_on, position_at_build, half_skin_squared, energy_step):
+                first_partner, drift_on, position_at_build, half_skin_squared, step_records):
     """Gravity and the contacts owned by particles first..last-1; returns (their count,
     particles moved more than half the skin, see ``finish_range``).
 
@@ -711,10 +711,11 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
     own_count = np.empty(TILE_PARTICLES if PAIRS else 0, dtype=np.int64)
     tile_end = np.empty(TILE_PARTICLES if PAIRS else 0, dtype=np.int64)  # each particle's contacts end there
     scratch = (tile, tile_history, response, tile_entry, tile_row, own, own_count, tile_end)
-    finishing = (first_partner, drift_on, position_at_build, half_skin_squared, energy_step)
-    # every pair's reaction also at its slot at a step whose state the run sees (the
-    # call's last, unfused): the contact forces of the VTK frames (State.contact_pairs)
-    store_reactions = not drift_on
+    finishing = (first_partner, drift_on, position_at_build, half_skin_squared, step_records)
+    # every pair's reaction also at its slot at a step whose state the run reads (a call's
+    # last, when its caller asks: a frame, a copy, a checkpoint, the end): the contact
+    # forces of the VTK frames and the files (State.contact_pairs)
+    store_reactions = step_records[3]
     active, moved_too_far = 0, 0
     group_first = first
     n_tile = 0
@@ -1032,7 +1033,7 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
         if n_tile == 0:
             active += acc[6]
             moved_too_far += finish_range(i, i + 1, last, first_partner, particles, pairs, dt, drift_on,
-                                          position_at_build, half_skin_squared, energy_step, True, acc, first)
+                                          position_at_build, half_skin_squared, step_records, True, acc, first)
             group_first = i + 1
         else:
             own[g, 0], own[g, 1], own[g, 2], own[g, 3], own[g, 4], own[g, 5], own_count[g] = acc
@@ -1042,14 +1043,14 @@ def force_range(first, last, particles, law, planes, cylinders, meshes, pairs, g
 
 @numba.njit(cache=True, fastmath=FAST, inline="always")
 def finish_range(first, last, finished_from, first_partner, particles, pairs, dt, drift_on, position_at_build,
-                 half_skin_squared, energy_step, own_given, own, block_first):
+                 half_skin_squared, step_records, own_given, own, block_first):
     """Particles first..last-1, except those whose first partner is at ``finished_from``
     or later (finished in the force pass): add the pair reactions and apply the closing
     kick; with ``drift_on`` also the next step's opening half kick and drift (the same
     operations in the same order, so the same bits as a closing kick then
     ``kick_drift``). Returns how many of them have moved more than half the skin since
-    the neighbour list was built (0 without drift). ``energy_step`` = (sampling,
-    inertia, particle_energy): when sampling, each particle's kinetic energy at the end of
+    the neighbour list was built (0 without drift). ``step_records`` = (sampling,
+    inertia, particle_energy, store_reactions; see ``advance``): when sampling, each particle's kinetic energy at the end of
     the step (after the closing kick) goes to particle_energy, fused here rather than a
     pass of its own (see ``advance``).
 
@@ -1066,7 +1067,7 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
     force of a particle finish_kick_drift finishes) are zeroed for the next force pass
     instead."""
     position, velocity, angular_velocity, force, torque, mass, inverse_mass, inverse_inertia, radius, material, last_force = particles
-    sampling, inertia, particle_energy = energy_step
+    sampling, inertia, particle_energy, _ = step_records
     if PAIRS:  # else an empty tuple (see advance)
         (offsets, neighbours, history, pair_overlap, reaction, reaction_slot, reverse_offsets, reaction_in_use,
          reaction_pending, partner_torque) = pairs
@@ -1150,7 +1151,7 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
 
 @numba.njit(cache=True, parallel=PARALLEL, inline=INLINE)
 def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time, tracking, threads, drift_on,
-                   position_at_build, half_skin_squared, bounds, first_partner, block_cycles, energy_step):
+                   position_at_build, half_skin_squared, bounds, first_partner, block_cycles, step_records):
     """Gravity and every contact force on every particle; returns (the number of
     contacts, particles finished and moved too far). Finishes every particle that has
     no partner in an earlier block (``force_range``), on one thread all of them; the
@@ -1173,7 +1174,7 @@ def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt
                 block_active, block_moved = force_range(bounds[block], bounds[block + 1], particles, law, planes,
                                                         cylinders, meshes, pairs, gravity, dt, time, tracking,
                                                         first_partner, drift_on, position_at_build, half_skin_squared,
-                                                        energy_step)
+                                                        step_records)
                 block_cycles[block] += cycle_counter() - started
                 active += block_active
                 moved_too_far += block_moved
@@ -1182,18 +1183,18 @@ def compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt
     # literal first argument, beside the prange loop's (11 of the 44 s of CPU of a first run
     # of scenarios/settle.toml)
     return force_range(bounds[0], bounds[1], particles, law, planes, cylinders, meshes, pairs, gravity, dt, time,
-                       tracking, first_partner, drift_on, position_at_build, half_skin_squared, energy_step)
+                       tracking, first_partner, drift_on, position_at_build, half_skin_squared, step_records)
 
 
 @numba.njit(cache=True, parallel=PARALLEL, inline=INLINE)
 def finish_kick_drift(particles, pairs, dt, drift_on, position_at_build, half_skin_squared, threads, bounds,
-                      first_partner, energy_step):
+                      first_partner, step_records):
     """``finish_range`` of the particles compute_forces left (a partner in an earlier
     block), in the same blocks."""
     moved_too_far = 0
     for block in particle_range(threads):
         moved_too_far += finish_range(bounds[block], bounds[block + 1], bounds[block], first_partner, particles,
-                                      pairs, dt, drift_on, position_at_build, half_skin_squared, energy_step, False,
+                                      pairs, dt, drift_on, position_at_build, half_skin_squared, step_records, False,
                                       (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0), 0)
     return moved_too_far
 
@@ -1252,8 +1253,8 @@ def total_energy(particle_energy, block_sums):
 
 @numba.njit(cache=True, error_model="numpy")
 def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_at_build, half_skin_squared,
-            dt, start_time, start_step, n_steps, resume, stop_at_separation, trace, tracking, threads, bounds,
-            first_partner, block_cycles, energy):
+            dt, start_time, start_step, n_steps, resume, stop_at_separation, store_reactions, trace, tracking,
+            threads, bounds, first_partner, block_cycles, energy):
     """Advance up to n_steps; return (steps completed, neighbour list needs a rebuild).
 
     Returns early
@@ -1268,6 +1269,14 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
       contact has occurred; tracked scenes only);
     * on a fault (status[0] != OK).
     ``trace`` (rows = steps, may have 0 rows) receives the probed contact each step.
+    ``store_reactions``: every touching pair's force is also stored at its reaction slot
+    at the steps that end on the closing kick (the call's last, and every traced or
+    stop-at-separation step), for a caller that reads that state's contact forces
+    (``State.contact_pairs``: a frame, a copy of the state, a checkpoint, the end of the
+    run). Otherwise only the reactions finish_kick_drift needs are stored (none on one
+    thread): a pile's reaction rows (24 bytes a list entry) are then not resident between
+    list builds (docs/benchmarks.md, "Reactions stored where they are read"). Which
+    steps store them changes no other value.
     ``energy`` = (sample_steps, inertia, samples, particle_energy, block_sums): at the end
     of every step whose number (start_step + 1, ...) is a multiple of sample_steps (> 0),
     the kinetic energy goes to the next element of ``samples`` (as many as fit): the run's
@@ -1308,17 +1317,17 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
                 return step, True
         time = start_time + (start_step + step + 1) * dt
         sampling = sample_steps > 0 and (start_step + step + 1) % sample_steps == 0 and sampled < samples.shape[0]
-        energy_step = (sampling, inertia, particle_energy)
         drifted = step + 1 < n_steps and step + 1 >= trace.shape[0] and not stop_at_separation
+        step_records = (sampling, inertia, particle_energy, store_reactions and not drifted)
         active, moved_too_far = compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time,
                                                tracking, threads, drifted, position_at_build, half_skin_squared, bounds,
-                                               first_partner, block_cycles, energy_step)
+                                               first_partner, block_cycles, step_records)
         if status[0] != OK:
             return step + 1, False
         if PARALLEL:  # compile-time: a serial kernel has no second pass to compile
             if threads > 1:
                 moved_too_far += finish_kick_drift(particles, pairs, dt, drifted, position_at_build,
-                                                   half_skin_squared, threads, bounds, first_partner, energy_step)
+                                                   half_skin_squared, threads, bounds, first_partner, step_records)
         if sampling:
             samples[sampled] = total_energy(particle_energy, block_sums)
             sampled += 1

@@ -250,17 +250,20 @@ class RunLoop:
         return int(math.ceil((index - self.flight_frames) * self.frame_interval / self.sim.dt - 1e-9))
 
     def call(self, start_step, n_steps, completing, trace, threads=None, dt=None, stop_at_separation=None,
-             sampled=False):
+             sampled=False, store_reactions=True):
         """``n_steps`` compiled steps from ``start_step``; returns (steps taken, whether the
         neighbour list must be rebuilt first). ``sampled``: the kinetic-energy samples of
-        the steps taken are added to the run's (a replay after a failure takes none)."""
+        the steps taken are added to the run's (a replay after a failure takes none).
+        ``store_reactions``: the pairs' contact forces of the state the call ends in are
+        stored for a reader (kernel.advance); False where nothing reads that state."""
         threads = threads or self.loop_threads.current
         samples = (np.empty((start_step + n_steps) // self.sample_steps - start_step // self.sample_steps)
                    if sampled else self.no_samples)
         # every parallel loop of the chunk (the opening kick_drift too) on that many
         numba.set_num_threads(threads)
         taken, needs_rebuild = self.kernel.advance(*self.arguments(start_step, n_steps, completing, trace, threads,
-                                                                   dt, stop_at_separation, samples=samples))
+                                                                   dt, stop_at_separation, samples=samples,
+                                                                   store_reactions=store_reactions))
         if sampled:
             first = start_step // self.sample_steps + 1
             # a fault returns after its step's forces, before that step's sample
@@ -271,7 +274,7 @@ class RunLoop:
         return taken, needs_rebuild
 
     def arguments(self, start_step, n_steps, completing, trace, threads, dt=None, stop_at_separation=None,
-                  one_block=False, samples=None):
+                  one_block=False, samples=None, store_reactions=True):
         """The arguments of the kernel's ``advance`` (``one_block``: the blocks of one
         thread, whatever ``threads`` says: for their types alone; ``samples``: where the
         kinetic-energy samples go, None for none)."""
@@ -286,7 +289,7 @@ class RunLoop:
         return (state.particles, state.law, state.planes, cylinders, meshes, pairs,
                 self.scene.gravity, state.position_at_build, self.half_skin_squared, sim.dt if dt is None else dt,
                 self.start_time, start_step, n_steps, completing,
-                self.stop_at_separation if stop_at_separation is None else stop_at_separation, trace,
+                self.stop_at_separation if stop_at_separation is None else stop_at_separation, store_reactions, trace,
                 self.tracking, threads, bounds, first_partner, block_cycles,
                 (self.sample_steps if samples is not None else 0, state.inertia,
                  self.no_samples if samples is None else samples, self.particle_energy, self.energy_blocks))
@@ -675,6 +678,22 @@ class RunLoop:
             return n_steps, True
         return min(n_steps, 2), self.stop_at_separation
 
+    def copy_due(self, end, copied_wall, copy_seconds, last_checkpoint_wall):
+        """(whether the last good state is copied at step ``end``, whether a checkpoint is
+        due by the wall clock): at most every snapshot_steps, and SNAPSHOT_COST_RATIO
+        times the last copy's duration apart."""
+        now = wallclock.perf_counter()
+        policy = self.policy
+        return (end - self.good["loop"]["steps"] >= self.snapshot_steps
+                and now - copied_wall >= SNAPSHOT_COST_RATIO * copy_seconds,
+                bool(policy is not None and policy.wall_interval and now - last_checkpoint_wall >= policy.wall_interval))
+
+    def read_at(self, end) -> bool:
+        """Whether the run reads the state at step ``end`` whatever the wall clock: a
+        frame, a checkpoint of the simulated-time interval, the end."""
+        return (end >= self.total_steps or (self.frames_on and end >= self.frame_step(self.loop["frames"]))
+                or bool(self.checkpoint_steps and end % self.checkpoint_steps == 0))
+
     def record(self, steps, returned_early):
         """After a chunk that passed the checks: energy sample, frame, progress; returns
         whether the run stops here at separation."""
@@ -731,17 +750,25 @@ class RunLoop:
                         else 0
                 if flown:
                     taken, needs_rebuild = flown, False
+                    # (no pairs, whose contact forces a copy would need stored: decided now)
+                    copy_wanted, wall_checkpoint = self.copy_due(steps + flown, copied_wall, copy_seconds,
+                                                                 last_checkpoint_wall)
                 else:
                     loop["flight"] = None  # stepped: a flight after this is planned afresh
                     chunk, stop = self.stepped(chunk)
                     trace = np.zeros((chunk, len(kernel.TRACE_COLUMNS))) if self.scene.trace else self.no_trace
+                    # decided before the call: the kernel stores the pairs' contact forces
+                    # only for a state the run reads (kernel.advance)
+                    copy_wanted, wall_checkpoint = self.copy_due(steps + chunk, copied_wall, copy_seconds,
+                                                                 last_checkpoint_wall)
+                    store_reactions = copy_wanted or wall_checkpoint or self.read_at(steps + chunk)
                     chunk_started = wallclock.perf_counter()
                     # compiled code never sees a signal before it returns anyway: held, a
                     # Ctrl-C is delivered here after the call, never inside numba's dispatcher
                     # (which then returned 'a result with an exception set', a SystemError)
                     with _interrupts_deferred():
                         taken, needs_rebuild = self.call(steps, chunk, completing, trace, chunk_threads, sampled=True,
-                                                         stop_at_separation=stop)
+                                                         stop_at_separation=stop, store_reactions=store_reactions)
                     self.loop_threads.record(chunk_threads, taken, wallclock.perf_counter() - chunk_started)
                     if self.scene.trace:
                         self.trace_chunks.append(trace[:taken])
@@ -757,13 +784,12 @@ class RunLoop:
                     continue
                 self.check(steps, on_grid=steps % self.check_steps == 0 or steps == self.total_steps)
                 separating = self.record(steps, returned_early=taken < chunk and not flown)
-                checkpoint_due = policy is not None and not separating and steps < self.total_steps and (
-                    (self.checkpoint_steps and steps % self.checkpoint_steps == 0)
-                    or (policy.wall_interval and wallclock.perf_counter() - last_checkpoint_wall
-                        >= policy.wall_interval))
+                # the chunk as planned (a separation ends it early, and the run with it)
+                whole = taken == (flown or chunk)
+                checkpoint_due = policy is not None and not separating and whole and steps < self.total_steps and (
+                    (self.checkpoint_steps and steps % self.checkpoint_steps == 0) or wall_checkpoint)
                 now_wall = wallclock.perf_counter()
-                if checkpoint_due or (steps - self.good["loop"]["steps"] >= self.snapshot_steps
-                                      and now_wall - copied_wall >= SNAPSHOT_COST_RATIO * copy_seconds):
+                if checkpoint_due or (copy_wanted and whole):
                     # after the checks: the state overwriting the last good one is good
                     self.good = self.snapshot(self.good)
                     copied_wall = wallclock.perf_counter()

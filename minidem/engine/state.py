@@ -83,8 +83,28 @@ def _sparse_rows(name: str, array: np.ndarray) -> dict[str, np.ndarray]:
                 in_use |= block[:, column]
             found.append((np.flatnonzero(in_use) + start).astype(index_type))
         rows = np.concatenate(found)
-    return {name + "@rows": rows, name + "@values": np.take(array, rows, axis=0),
+    return {name + "@rows": rows, name + "@values": RowsTaken(array, rows),
             name + "@shape": np.array(array.shape, dtype=np.int64)}
+
+
+class RowsTaken:
+    """The rows ``rows`` of ``array`` (a sparse copy's values, :func:`_sparse_rows`), not
+    taken yet: :class:`StateCopy` writes them a block of rows at a time, so a copy of the
+    state never holds a whole array of them (the touching pairs' histories and reactions,
+    24 bytes a contact each: 12 MiB at N = 200,000, kept by the heap after the copy);
+    ``np.array`` takes them all at once (:meth:`State.capture`)."""
+
+    def __init__(self, array: np.ndarray, rows: np.ndarray):
+        self.array, self.rows = array, rows
+        self.shape, self.dtype = (rows.shape[0],) + array.shape[1:], array.dtype
+
+    def blocks(self):
+        for start in range(0, self.rows.shape[0], _SPARSE_BLOCK):
+            yield np.take(self.array, self.rows[start:start + _SPARSE_BLOCK], axis=0)
+
+    def __array__(self, dtype=None, copy=None):
+        taken = np.take(self.array, self.rows, axis=0)
+        return taken if dtype is None else taken.astype(dtype)
 
 
 def _full_array(arrays: dict, name: str) -> np.ndarray:
@@ -145,15 +165,19 @@ def pair_arrays(offsets, partners, history, overlap, slot, reverse_offsets):
     pair touching yet. The reactions are in the transposed list's order (row ``slot[e]``
     for entry e), and so is ``reaction_in_use``, which marks the rows holding a touching
     pair's reaction; the force pass stores them for the partners finish_kick_drift
-    finishes and, at a call's last step, for every touching pair (State.contact_pairs),
-    and sums the others' straight into their force rows, marking those particles in
+    finishes and, at the last step of a call whose state the run reads, for every
+    touching pair (State.contact_pairs; kernel.advance's ``store_reactions``), and sums
+    the others' straight into their force rows, marking those particles in
     ``reaction_pending`` (a byte a particle, zero between passes; see
-    minidem.engine.kernel). The torque on the partner, ``partner_torque`` (last, in the
+    minidem.engine.kernel). So on one thread the reactions are written only where the
+    state is read (a frame, a copy, a checkpoint, the end), and lie on a mapping of their
+    own (``untouched_zeros``): between such steps and the next list build, none of their
+    pages is resident. The torque on the partner, ``partner_torque`` (last, in the
     same order), is kept apart from its force: finish_kick_drift alone reads it, so the
     force pass writes it only for the partners that pass finishes (none on one thread)
     and its pages are mostly never resident. Not state: each row read is written in the
     same step (a capture does not hold it, a restore makes it zero)."""
-    return (offsets, partners, history, overlap, np.zeros((partners.shape[0], 3)), slot, reverse_offsets,
+    return (offsets, partners, history, overlap, untouched_zeros(partners.shape[0], 3), slot, reverse_offsets,
             np.zeros(partners.shape[0], dtype=np.uint8), np.zeros(offsets.shape[0] - 1, dtype=np.uint8),
             untouched_zeros(partners.shape[0], 3))
 
@@ -207,7 +231,13 @@ class StateCopy:
         self.offsets = {}
         for name, array in items:
             self.offsets[name] = handle.tell()
-            np.lib.format.write_array(handle, np.asarray(array, order="C"), allow_pickle=False)
+            if isinstance(array, RowsTaken):  # the .npy header, then the rows a block at a time
+                np.lib.format.write_array_header_1_0(handle, {
+                    "descr": np.lib.format.dtype_to_descr(array.dtype), "fortran_order": False, "shape": array.shape})
+                for block in array.blocks():
+                    handle.write(memoryview(np.ascontiguousarray(block)).cast("B"))
+            else:
+                np.lib.format.write_array(handle, np.asarray(array, order="C"), allow_pickle=False)
         handle.flush()
 
     def read(self) -> dict[str, np.ndarray]:
