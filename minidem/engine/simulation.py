@@ -11,6 +11,7 @@ per step or per contact), is :mod:`minidem.engine.run_loop`; the arrays it advan
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import importlib.util
@@ -28,7 +29,7 @@ from minidem.contact import declarations, history as contact_history, laws
 from minidem.engine import integrate, kernel
 from minidem.engine.notices import notice_if_slow
 from minidem.engine.run_loop import RunLoop, RunResult
-from minidem.engine.state import PAIR_TUPLE, STATE_ARRAYS, State, pair_arrays
+from minidem.engine.state import PAIR_TUPLE, STATE_ARRAYS, State, pair_arrays, rows_in_use
 from minidem.geometry import neighbours, primitives
 from minidem.geometry.order import exchange_pairs, mean_step, permute_rows, scattered, spatial_order
 from minidem.scene import derived
@@ -200,6 +201,41 @@ def release_free_memory() -> None:
     library = _c_library()
     if library is not None:
         library.malloc_trim(0)
+
+
+# glibc's mallopt parameters, and the thresholds its dynamic rule ends at on a 64-bit
+# system (the mmap threshold rises to the size of each mapped block freed, up to 32 MiB,
+# and the trim threshold with it, to twice that)
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+_MMAP_THRESHOLD_MAX = 32 << 20
+# blocks from this size up are mapped while a list is built
+LIST_MAPPING_BYTES = 1 << 20
+
+
+@contextlib.contextmanager
+def lists_on_mappings(enabled: bool):
+    """While a neighbour list is built, every block of LIST_MAPPING_BYTES or more gets a
+    mapping of its own (glibc's mmap threshold lowered), so that the list's arrays, kept
+    until the next build, go back to the system the moment that build releases them. From
+    the heap (glibc serves blocks up to 32 MiB from it once a few mapped ones have been
+    freed) they left holes the new list did not fit: the builds of the settled pile at
+    N = 200,000 peaked 20-35 MiB above the step loop, 3 MiB with the lists mapped
+    (docs/benchmarks.md, "A pile's memory at N = 200,000"). Afterwards the thresholds are
+    fixed where glibc's dynamic rule ends (mmap 32 MiB, trim 64 MiB): the step loop's
+    temporaries come from the heap as before (a threshold left low made every one of them
+    a fresh mapping: 3.4 % slower, docs/multi-particle.md). One thread only, as
+    release_free_memory: a threaded run would fault the new mappings' pages in on both
+    threads at once."""
+    library = _c_library() if enabled else None
+    if library is None:
+        yield
+        return
+    library.mallopt(_M_MMAP_THRESHOLD, LIST_MAPPING_BYTES)
+    try:
+        yield
+    finally:
+        library.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_MAX)
+        library.mallopt(_M_TRIM_THRESHOLD, 2 * _MMAP_THRESHOLD_MAX)
 
 
 class Simulation:
@@ -681,36 +717,58 @@ class Simulation:
     def rebuild(self, state: State) -> None:
         """New Verlet lists at the current positions; every contact keeps its history.
         The particles are first sorted in space again when they have mixed (RESORT_RATIO)."""
+        # Memory is given back on one thread only (a thread count of the run, not of a
+        # chunk: a threaded run probes or falls back to one thread for some chunks,
+        # LoopThreads): a threaded run keeps the freed pages for its next build, which
+        # would take their page faults again on all its threads at once: 7.5 % of its time
+        # (N = 200,000 lattice, two threads, 3,000 steps, five pairs interleaved: 19.35 s
+        # against 20.93 s by medians, every pair faster; on one thread 32.0 against 32.3 s,
+        # not resolved; peaks 334-340 MiB against 323-339)
+        one_thread = self.loop_threads() == 1
+        with lists_on_mappings(one_thread):
+            self._build_lists(state)
+        if one_thread:
+            release_free_memory()
+
+    def _build_lists(self, state: State) -> None:
         if (self.exchange_signs is not None and state.builds > 0
                 and mean_step(state.position) > self.resort_ratio * state.sorted_step):
             self.sort_in_space(state)
         radius = self.scene.radius
         lists = None
         if self.pairs:
-            old = state.pairs[:4]  # offsets, partners, history, overlap
-            # The old list is referenced by ``old`` alone from here, and released once its
+            old_offsets, old_partners, old_history, old_overlap = state.pairs[:4]
+            # The old list is referenced here alone from now, and released once its
             # histories are carried over, before the reactions and their slots are
-            # allocated: at its peak a rebuild holds the old list and the new one with its
-            # histories, not two whole sets of pair arrays.
+            # allocated; of its histories only the rows in use are kept (the others are
+            # zero), the whole array released before the new list's is made: at its peak a
+            # rebuild holds the old list's partners and overlaps, the touching pairs'
+            # histories and the new list, not two lists' histories (24 bytes a list entry,
+            # 116 a particle of the settled pile at 200,000, less 28 a touching pair)
             state.pairs = None
             # likewise the old list's first partners (8 bytes a particle), recomputed with the
             # new list; a failure leaves none (State.restore recomputes them with the lists)
             state.first_partner = None
+            history_width, carried = old_history.shape[1], rows_in_use(old_history)
+            del old_history
             try:
                 lists = state.build_lists(state.position)  # the position at build from here on
                 offsets, found = lists["pair_offsets"], lists["pair_neighbours"]
                 # zeros from the operating system: rows no contact is carried into stay
                 # unwritten (not resident) until a contact starts there
-                history = np.zeros((found.shape[0], old[2].shape[1]))
+                history = np.zeros((found.shape[0], history_width))
                 # a pair new to the list starts with overlap -1 (apart: the skin guarantees it)
                 overlap = np.full(found.shape[0], -1.0)
-                neighbours.carry_history(*old, offsets, found, history, overlap)
+                neighbours.carry_history(old_offsets, old_partners, *carried, old_overlap, offsets, found, history,
+                                         overlap)
             except BaseException:
                 # the list as before the call, the rest of the tuple made again by the
                 # restore a failure does (State.restore)
-                state.pairs = old + (None,) * (len(PAIR_TUPLE) - len(old))
+                old_history = np.zeros((old_partners.shape[0], history_width))
+                old_history[carried[0]] = carried[1]
+                state.pairs = (old_offsets, old_partners, old_history, old_overlap) + (None,) * (len(PAIR_TUPLE) - 4)
                 raise
-            del old
+            del old_offsets, old_partners, old_overlap, carried
             if state.builds == 0:
                 # t = 0: spheres may start touching; their overlap is the 'previous' one.
                 # A few rows at a time: whole-list temporaries (three (M, 3) arrays) were
@@ -730,23 +788,14 @@ class Simulation:
             offsets, found = lists["mesh_offsets"], lists["mesh_candidates"]
             history = np.zeros((found.shape[0], old_history.shape[1]))
             overlap = np.full(found.shape[0], -1.0)
-            neighbours.carry_history(old_offsets, old_found, old_history, old_overlap, offsets, found, history,
-                                     overlap)
+            neighbours.carry_history(old_offsets, old_found, *rows_in_use(old_history), old_overlap, offsets, found,
+                                     history, overlap)
             state.meshes = (triangles, triangle_material, offsets, found, history, overlap)
         # in place: a new array beside the old one, which the last good state held, was 24
         # bytes a particle more at the peak of a large run's rebuild
         np.copyto(state.position_at_build, state.position)
         state.list_near_planes()
         state.builds += 1
-        # The freed pages go back to the system in a run on one thread only. A threaded
-        # run keeps them for the next build, which would take their page faults again
-        # on all its threads at once: 7.5 % of its time (N = 200,000 lattice, two threads,
-        # 3,000 steps, five pairs interleaved: 19.35 s against 20.93 s by medians, every
-        # pair faster; on one thread 32.0 against 32.3 s, not resolved; peaks 334-340 MiB
-        # against 323-339). Decided by the run's thread count, not the chunk's: a
-        # threaded run probes or falls back to one thread for some chunks (LoopThreads)
-        if self.loop_threads() == 1:
-            release_free_memory()
 
     # -- running -----------------------------------------------------------------
     def run(self, chunk_steps: int = 200_000, progress=None, on_frame=None, checkpoints=None,

@@ -103,7 +103,7 @@ def compile_shared(pairs: bool, meshes: bool) -> None:
     (C-contiguous float64 and int64 arrays, a float skin, an int count)."""
     import numpy as np
 
-    from minidem.engine.state import pair_index_type
+    from minidem.engine.state import pair_index_type, rows_in_use
     from minidem.geometry import neighbours
 
     n, h = 2, 3
@@ -115,14 +115,14 @@ def compile_shared(pairs: bool, meshes: bool) -> None:
         # the pair list's partners in the engine's integer type (Simulation.rebuild)
         offsets, found = neighbours.build_pairs(position, scalar, 0.5)
         found = found.astype(pair_index_type(found.shape[0], n), copy=False)
-        neighbours.carry_history(np.zeros(n + 1, dtype=np.int64), index.astype(found.dtype), history, overlap,
-                                 offsets, found, np.zeros((found.shape[0], h)), np.full(found.shape[0], -1.0))
+        neighbours.carry_history(np.zeros(n + 1, dtype=np.int64), index.astype(found.dtype), *rows_in_use(history),
+                                 overlap, offsets, found, np.zeros((found.shape[0], h)), np.full(found.shape[0], -1.0))
         neighbours.reverse_index(offsets, found, n)
     if meshes:
         triangles = np.array([[[0.0, 0.0, -1.0], [1.0, 0.0, -1.0], [0.0, 1.0, -1.0]]])
         offsets, found = neighbours.mesh_candidates(position, scalar, 0.5, triangles)
-        neighbours.carry_history(np.zeros(n + 1, dtype=np.int64), index, history, overlap, offsets, found,
-                                 np.zeros((found.shape[0], h)), np.full(found.shape[0], -1.0))
+        neighbours.carry_history(np.zeros(n + 1, dtype=np.int64), index, *rows_in_use(history), overlap, offsets,
+                                 found, np.zeros((found.shape[0], h)), np.full(found.shape[0], -1.0))
     compile_guard()
 
 

@@ -367,40 +367,43 @@ def benchmark_scaling(n_values=(2_000, 20_000, 200_000), thread_counts=(1, 2),
 # per-contact state across rebuilds
 # ---------------------------------------------------------------------------------
 @numba.njit(cache=True, parallel=True)
-def carry_history(old_offsets, old_keys, old_history, old_overlap, new_offsets, new_keys, history, overlap):
+def carry_history(old_offsets, old_keys, old_rows, old_values, old_overlap, new_offsets, new_keys, history,
+                  overlap):
     """Per-entry contact state of a rebuilt CSR list, taken over from the old one.
 
     Both lists hold, per row, ascending keys (partner particles j > i, triangle ids or
     plane indices); a merge of the two sorted rows copies the history and last overlap
-    of every (row, key) present in both. ``history`` (one row per new entry) must hold
-    zeros: the carried rows are written into it, the others left alone, so an array from
-    the operating system's zeroed pages (numpy's np.zeros) stays unwritten, and not
-    resident, where no contact was carried (24 bytes a list entry of a loose or falling
-    phase). ``overlap`` (one per new entry) holds, on entry, the last overlap a new entry
-    starts with (the caller's: -1 for pairs and mesh candidates, the current overlap for
-    planes); the carried entries' are written over it. The list's margin (the Verlet skin,
-    plus the law's reach) guarantees that a contact absent from the old list was not
-    engaged, so no live contact loses its history. Rows are independent, so the result
-    does not depend on the thread count.
+    of every (row, key) present in both. The old histories come as their rows in use
+    alone (``old_rows``, ascending entry indices, and ``old_values``; the other rows are
+    zero: ``minidem.engine.state.rows_in_use``), so that a rebuild can release the old
+    array before it makes the new one (24 bytes a list entry of a pile's peak, the
+    history of every listed pair, touching or not). ``history`` (one row per new entry)
+    must hold zeros: the carried rows are written into it, the others left alone, so an
+    array from the operating system's zeroed pages (numpy's np.zeros) stays unwritten,
+    and not resident, where no contact was carried (24 bytes a list entry of a loose or
+    falling phase). ``overlap`` (one per new entry) holds, on entry, the last overlap a
+    new entry starts with (the caller's: -1 for pairs and mesh candidates, the current
+    overlap for planes); the carried entries' are written over it. The list's margin (the
+    Verlet skin, plus the law's reach) guarantees that a contact absent from the old list
+    was not engaged, so no live contact loses its history. Rows are independent, so the
+    result does not depend on the thread count.
     """
     n_rows = new_offsets.shape[0] - 1
-    width = old_history.shape[1]
-    # the bits: a row is written when any is set (-0.0 included), else left alone (a copy
-    # of a zero row would still make its page resident)
-    old_bits = old_history.view(np.uint64)
+    width = old_values.shape[1]
     for row in numba.prange(n_rows):
         a, a_end = old_offsets[row], old_offsets[row + 1]
+        # the row's first history in use
+        c = np.searchsorted(old_rows, a) if old_rows.shape[0] else 0
         for b in range(new_offsets[row], new_offsets[row + 1]):
             key = new_keys[b]
             while a < a_end and old_keys[a] < key:
                 a += 1
             if a < a_end and old_keys[a] == key:
-                in_use = np.uint64(0)
-                for k in range(width):
-                    in_use |= old_bits[a, k]
-                if in_use != 0:
+                while c < old_rows.shape[0] and old_rows[c] < a:
+                    c += 1
+                if c < old_rows.shape[0] and old_rows[c] == a:
                     for k in range(width):
-                        history[b, k] = old_history[a, k]
+                        history[b, k] = old_values[c, k]
                 overlap[b] = old_overlap[a]
 
 
