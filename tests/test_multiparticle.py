@@ -643,11 +643,13 @@ def test_last_good_copy_keeps_the_touching_contacts_rows_and_gives_every_bit_bac
         assert np.array_equal(array.view(np.uint8), restored[name].view(np.uint8)), name
 
 
-def test_a_list_build_that_fails_leaves_a_state_the_last_good_copy_restores(monkeypatch):
+@pytest.mark.parametrize("fails_in", ["build_lists", "rows_in_use"])
+def test_a_list_build_that_fails_leaves_a_state_the_last_good_copy_restores(monkeypatch, fails_in):
     # Simulation.rebuild puts the old list back when the build fails (out of memory, an
-    # interrupt), for the restore a failure does. The rest of the pair tuple is gone
-    # then; State.restore must make it again, the same bits as a restore of the intact
-    # state, and the run must go on from there as from the copy.
+    # interrupt), for the restore a failure does: also when it fails taking the old
+    # histories' rows in use (the review's find: the list was gone then). The rest of the
+    # pair tuple is gone then; State.restore must make it again, the same bits as a
+    # restore of the intact state, and the run must go on from there as from the copy.
     sim = small_pile()
     state = sim.state
     copy_ = state.capture()
@@ -656,10 +658,13 @@ def test_a_list_build_that_fails_leaves_a_state_the_last_good_copy_restores(monk
 
     def out_of_memory(*args, **kwargs):
         raise MemoryError
-    monkeypatch.setattr(state, "build_lists", out_of_memory)
+    monkeypatch.setattr(*((state, "build_lists") if fails_in == "build_lists" else (simulation, "rows_in_use")),
+                        out_of_memory)
     with pytest.raises(MemoryError):
         sim.rebuild(state)
     monkeypatch.undo()
+    for left, expected in zip(state.pairs[:4], intact.pairs[:4]):  # the old list, its histories bit for bit
+        assert left.dtype == expected.dtype and left.tobytes() == expected.tobytes()
     state.restore(copy_)
     assert len(state.pairs) == len(intact.pairs)
     for restored, expected in zip(state.pairs, intact.pairs):

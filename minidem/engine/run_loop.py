@@ -235,6 +235,10 @@ class RunLoop:
                                       else np.zeros(rows.shape[0]))
         self.energy, self.trace_chunks = [], []
         self.resume_from, self.resumed = resume_from, resume_from is not None
+        # the last good state's file (opened at its first copy, closed when the run ends),
+        # beside the run's other files (its disk), else in the system's temporary directory
+        directory = policy.directory if policy is not None else None
+        self.good_copy = StateCopy(directory if directory and Path(directory).is_dir() else None)
 
     @property
     def scene(self) -> Scene:
@@ -415,10 +419,10 @@ class RunLoop:
         self.checked, self.checked_counts = dict(self.loop), (len(self.energy), len(self.trace_chunks))
 
     def snapshot(self, reuse=None, live=False):
-        """The state now, for checkpoints and as the last good state: a copy in a file
-        (:class:`StateCopy`); ``reuse``: an older snapshot, its file overwritten (one
-        copy of the state, not two); ``live``: the state's own arrays, not copied (valid
-        until the kernel runs again). The arrays and the loop's bookkeeping are recorded
+        """The state now, for checkpoints and as the last good state: a copy in the run's
+        one file (:class:`StateCopy`, overwritten: one copy of the state, never two);
+        ``reuse``: an older snapshot, updated in place; ``live``: the state's own arrays,
+        not copied (valid until the kernel runs again). The arrays and the loop's bookkeeping are recorded
         together with SIGINT/SIGTERM held, so an interrupt never finds them from two
         different steps."""
         with _interrupts_deferred():
@@ -426,11 +430,8 @@ class RunLoop:
             if live:
                 snap["arrays"] = self.state.live_arrays()
             else:
-                if reuse is None:
-                    # beside the run's other files (its disk), else the system's temporary directory
-                    directory = self.policy.directory if self.policy is not None else None
-                    snap["arrays"] = StateCopy(directory if directory and Path(directory).is_dir() else None)
-                snap["arrays"].write(self.state.capture_items)
+                self.good_copy.write(self.state.capture_items)
+                snap["arrays"] = self.good_copy
             snap.update(tracking=(self.probe.copy(), self.stats.copy(), self.status.copy()), loop=dict(self.loop),
                         energy=len(self.energy), trace=len(self.trace_chunks))
         return snap
@@ -730,9 +731,8 @@ class RunLoop:
 
     def release_good(self):
         """Close the last good copy's file (and free it): nothing restores from it now."""
-        good, self.good = getattr(self, "good", None), None
-        if good is not None and isinstance(good["arrays"], StateCopy):
-            good["arrays"].close()
+        self.good = None
+        self.good_copy.close()
 
     def run_loop(self) -> RunResult:
         sim, state, loop, policy = self.sim, self.state, self.loop, self.policy

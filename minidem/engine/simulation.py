@@ -191,13 +191,12 @@ def _c_library():
 
 def release_free_memory() -> None:
     """Give the free pages of the C heap back to the system (glibc's malloc_trim), after
-    a neighbour-list rebuild: the build's temporaries and the old list, freed, stay
-    resident otherwise (glibc serves blocks below its mmap threshold, which it raises to
-    the size of every mapped block freed, up to 32 MiB, from the heap). The allocation
-    policy is unchanged (unlike fixing the mmap threshold, which made every large
-    temporary of the step loop a fresh mapping, 3.4 % slower, see docs/multi-particle.md):
-    pages the next rebuild takes are faulted in again, a fraction of a millisecond. Settle
-    jitter N = 20,000, 10,000 steps, one thread: peak 187.5 -> 183.0 MB."""
+    a neighbour-list rebuild: the build's temporaries, freed, stay resident otherwise
+    (glibc serves blocks below its mmap threshold from the heap; lists_on_mappings fixes
+    that threshold at 32 MiB, where glibc's own rule ends, after the first build on one
+    thread). Pages the next rebuild takes are faulted in again, a fraction of a
+    millisecond. Settle jitter N = 20,000, 10,000 steps, one thread: peak 187.5 -> 183.0
+    MB (before lists_on_mappings)."""
     library = _c_library()
     if library is not None:
         library.malloc_trim(0)
@@ -750,9 +749,10 @@ class Simulation:
             # likewise the old list's first partners (8 bytes a particle), recomputed with the
             # new list; a failure leaves none (State.restore recomputes them with the lists)
             state.first_partner = None
-            history_width, carried = old_history.shape[1], rows_in_use(old_history)
-            del old_history
+            history_width, carried = old_history.shape[1], None
             try:
+                carried = rows_in_use(old_history)
+                old_history = None
                 lists = state.build_lists(state.position)  # the position at build from here on
                 offsets, found = lists["pair_offsets"], lists["pair_neighbours"]
                 # zeros from the operating system: rows no contact is carried into stay
@@ -765,8 +765,9 @@ class Simulation:
             except BaseException:
                 # the list as before the call, the rest of the tuple made again by the
                 # restore a failure does (State.restore)
-                old_history = np.zeros((old_partners.shape[0], history_width))
-                old_history[carried[0]] = carried[1]
+                if old_history is None:
+                    old_history = np.zeros((old_partners.shape[0], history_width))
+                    old_history[carried[0]] = carried[1]
                 state.pairs = (old_offsets, old_partners, old_history, old_overlap) + (None,) * (len(PAIR_TUPLE) - 4)
                 raise
             del old_offsets, old_partners, old_overlap, carried

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import io
 import mmap
+import os
 import tempfile
 import warnings
 
@@ -196,6 +197,27 @@ def pair_arrays(offsets, partners, history, overlap, slot, reverse_offsets):
             untouched_zeros(partners.shape[0], 3))
 
 
+def on_memory_file_system(directory=None) -> bool:
+    """Whether ``directory`` (default: the system's temporary directory) is on tmpfs or
+    ramfs, by the longest mount point above it in /proc/self/mounts (False where there is
+    none: not Linux)."""
+    target = os.path.realpath(directory or tempfile.gettempdir())
+    best, kind = "", ""
+    try:
+        with open("/proc/self/mounts") as mounts:
+            for line in mounts:
+                fields = line.split()
+                if len(fields) < 3:
+                    continue
+                point = fields[1].replace("\\040", " ")
+                inside = target == point or target.startswith(point.rstrip("/") + "/")
+                if inside and len(point) >= len(best):
+                    best, kind = point, fields[2]
+    except OSError:
+        return False
+    return kind in ("tmpfs", "ramfs")
+
+
 class StateCopy:
     """A copy of the state (:meth:`State.capture_items`) kept in a file, not in memory: the
     last good state of a run (:class:`minidem.engine.run_loop.RunLoop`), which a blow-up
@@ -208,7 +230,9 @@ class StateCopy:
     memory only as the system's page cache, which the system gives up when memory runs
     short (anonymous memory it cannot, without swap). The file has no name (an unlinked
     temporary file in ``directory``: the run's output directory, else the system's
-    temporary directory), so nothing is left behind, whatever ends the process.
+    temporary directory), so nothing is left behind, whatever ends the process. A
+    directory on tmpfs or ramfs (a common /tmp) is memory the system cannot give up
+    either: there the copy is kept in the process's memory, where it is counted.
 
     Each :meth:`write` replaces the copy: the items are streamed in, one array at a time
     (``.npy`` records one after another), never all of them in memory at once. If the
@@ -226,7 +250,8 @@ class StateCopy:
         :meth:`State.capture_items`; called again if the file fails half-way)."""
         if self.handle is None:
             try:
-                self.handle = tempfile.TemporaryFile(dir=self.directory, prefix=".minidem-last-good-")
+                self.handle = (io.BytesIO() if on_memory_file_system(self.directory) else
+                               tempfile.TemporaryFile(dir=self.directory, prefix=".minidem-last-good-"))
             except OSError as exc:
                 self.handle = self._in_memory(exc)
         try:
@@ -263,9 +288,12 @@ class StateCopy:
         return arrays
 
     def close(self) -> None:
-        if self.handle is not None:
-            self.handle.close()
-            self.handle = None
+        handle, self.handle = self.handle, None
+        if handle is not None:
+            try:
+                handle.close()
+            except OSError:  # the buffered bytes of a write that failed (a full disk): the copy goes anyway
+                pass
 
     def _in_memory(self, exc: OSError) -> io.BytesIO:
         where = self.directory or tempfile.gettempdir()
