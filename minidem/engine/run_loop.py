@@ -420,9 +420,11 @@ class RunLoop:
 
     def snapshot(self, reuse=None, live=False):
         """The state now, for checkpoints and as the last good state: a copy in the run's
-        one file (:class:`StateCopy`, overwritten: one copy of the state, never two);
-        ``reuse``: an older snapshot, updated in place; ``live``: the state's own arrays,
-        not copied (valid until the kernel runs again). The arrays and the loop's bookkeeping are recorded
+        one file (:class:`StateCopy`, overwritten: one copy of the state, never two), or
+        with ``live`` the state's own arrays, not copied (valid until the kernel runs
+        again). ``reuse``: the snapshot whose file this overwrites, updated in place, so
+        that its bookkeeping follows the file also when an interrupt held during the copy
+        is raised before this returns. The arrays and the loop's bookkeeping are recorded
         together with SIGINT/SIGTERM held, so an interrupt never finds them from two
         different steps."""
         with _interrupts_deferred():

@@ -29,7 +29,7 @@ from minidem.contact import declarations, history as contact_history, laws
 from minidem.engine import integrate, kernel
 from minidem.engine.notices import notice_if_slow
 from minidem.engine.run_loop import RunLoop, RunResult
-from minidem.engine.state import PAIR_TUPLE, STATE_ARRAYS, State, pair_arrays, rows_in_use
+from minidem.engine.state import PAIR_TUPLE, STATE_ARRAYS, State, expand_rows, pair_arrays, rows_in_use
 from minidem.geometry import neighbours, primitives
 from minidem.geometry.order import exchange_pairs, mean_step, permute_rows, scattered, spatial_order
 from minidem.scene import derived
@@ -766,8 +766,7 @@ class Simulation:
                 # the list as before the call, the rest of the tuple made again by the
                 # restore a failure does (State.restore)
                 if old_history is None:
-                    old_history = np.zeros((old_partners.shape[0], history_width))
-                    old_history[carried[0]] = carried[1]
+                    old_history = expand_rows(*carried, (old_partners.shape[0], history_width))
                 state.pairs = (old_offsets, old_partners, old_history, old_overlap) + (None,) * (len(PAIR_TUPLE) - 4)
                 raise
             del old_offsets, old_partners, old_overlap, carried

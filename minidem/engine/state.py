@@ -54,7 +54,6 @@ _SPARSE_ROWS = ("plane_history", "cylinder_history", "mesh_history", "pair_histo
 # settle scene at 1,000,000 (docs/benchmarks.md, "Memory per particle"). Files hold them
 # (RunLoop.write_state): a script reading pair_history needs its pairs.
 LISTS = ("pair_offsets", "pair_neighbours", "mesh_offsets", "mesh_candidates")
-_SPARSE_PARTS = ("@rows", "@values", "@shape")
 _SPARSE_BLOCK = 1 << 16  # rows scanned at a time
 
 
@@ -126,8 +125,14 @@ def _full_array(arrays: dict, name: str) -> np.ndarray:
     """The array ``name`` of a capture, expanded if it was captured sparse."""
     if name in arrays:
         return arrays[name]
-    full = np.zeros(tuple(arrays[name + "@shape"]), dtype=arrays[name + "@values"].dtype)
-    full[arrays[name + "@rows"]] = arrays[name + "@values"]
+    return expand_rows(arrays[name + "@rows"], arrays[name + "@values"], tuple(arrays[name + "@shape"]))
+
+
+def expand_rows(rows: np.ndarray, values: np.ndarray, shape: tuple) -> np.ndarray:
+    """The array of ``shape`` that holds ``values`` at ``rows`` and zeros elsewhere: what
+    :func:`_sparse_rows` and :func:`rows_in_use` took, given back bit for bit."""
+    full = np.zeros(shape, dtype=values.dtype)
+    full[rows] = values
     return full
 
 
