@@ -242,3 +242,60 @@ def test_callable_from_compiled_code():
     assert engine_step(positions, positions, radii, SKIN) == -1
     expected = build_pairs(positions, radii, SKIN)[0][-1]
     assert engine_step(positions, positions + SKIN, radii, SKIN) == expected
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_carry_history_is_a_merge_of_the_old_list_into_the_new(threads):
+    """carry_history's contract, against a dictionary: every (row, key) of the new list
+    that the old list holds takes its overlap, and its history where that row was in use
+    (the rows not given are zero); every other entry keeps what the caller put there.
+    Rows span several of its blocks, empty rows and rows in use at a block's edge
+    included."""
+    from minidem.engine.state import rows_in_use
+    from minidem.geometry.neighbours import _CARRY_BLOCK, carry_history
+
+    rng = np.random.default_rng(11)
+    n_rows = 3 * _CARRY_BLOCK + 17
+    edges = [row for block in range(1, 4) for row in (block * _CARRY_BLOCK - 1, block * _CARRY_BLOCK)] + [0]
+
+    def random_rows():
+        rows = [np.sort(rng.choice(8, k, replace=False)) for k in rng.integers(0, 6, n_rows)]
+        for row in rng.choice(n_rows, n_rows // 5, replace=False):
+            rows[row] = rows[row][:0]
+        return rows
+
+    def csr(rows):
+        offsets = np.concatenate([[0], np.cumsum([len(r) for r in rows])]).astype(np.int64)
+        return offsets, np.concatenate(rows).astype(np.int32)
+
+    old_row_keys, new_row_keys = random_rows(), random_rows()
+    for row in edges:  # the rows at the blocks' edges: carried whole
+        old_row_keys[row] = new_row_keys[row] = np.array([2, 5])
+    old_offsets, old_keys = csr(old_row_keys)
+    new_offsets, new_keys = csr(new_row_keys)
+    old_history = rng.normal(size=(old_keys.shape[0], 3))
+    old_history[rng.random(old_keys.shape[0]) < 0.5] = 0.0  # contacts that ended: no history
+    old_history[old_offsets[edges]] = 1.0  # in use at the edges
+    old_overlap = rng.normal(size=old_keys.shape[0])
+    history = np.zeros((new_keys.shape[0], 3))
+    overlap = np.full(new_keys.shape[0], -1.0)
+    previous = numba.get_num_threads()
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        carry_history(old_offsets, old_keys, *rows_in_use(old_history), old_overlap, new_offsets, new_keys, history,
+                      overlap)
+    finally:
+        numba.set_num_threads(previous)
+
+    old = {(row, int(old_keys[e])): e for row in range(n_rows) for e in range(old_offsets[row], old_offsets[row + 1])}
+    carried = 0
+    for row in range(n_rows):
+        for e in range(new_offsets[row], new_offsets[row + 1]):
+            a = old.get((row, int(new_keys[e])))
+            if a is None:
+                assert overlap[e] == -1.0 and not history[e].any()
+            else:
+                carried += 1
+                assert overlap[e] == old_overlap[a]
+                np.testing.assert_array_equal(history[e], old_history[a])
+    assert carried > 1000  # the merge is exercised, in every block
