@@ -288,14 +288,14 @@ def test_carry_history_is_a_merge_of_the_old_list_into_the_new(threads):
         numba.set_num_threads(previous)
 
     old = {(row, int(old_keys[e])): e for row in range(n_rows) for e in range(old_offsets[row], old_offsets[row + 1])}
-    carried = 0
+    carried = np.zeros(n_rows // _CARRY_BLOCK + 1, dtype=int)
     for row in range(n_rows):
         for e in range(new_offsets[row], new_offsets[row + 1]):
             a = old.get((row, int(new_keys[e])))
             if a is None:
                 assert overlap[e] == -1.0 and not history[e].any()
             else:
-                carried += 1
+                carried[row // _CARRY_BLOCK] += 1
                 assert overlap[e] == old_overlap[a]
                 np.testing.assert_array_equal(history[e], old_history[a])
-    assert carried > 1000  # the merge is exercised, in every block
+    assert carried.min() > 5  # the merge is exercised in every block, the last, partial one too
