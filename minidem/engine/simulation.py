@@ -220,10 +220,10 @@ def lists_on_mappings(enabled: bool):
     freed) they left holes the new list did not fit: the builds of the settled pile at
     N = 200,000 peaked at up to 301 MiB against 289 for the steps between them, with the
     lists mapped at 284 against 284 (docs/benchmarks.md, "A pile's memory at N =
-    200,000"). Afterwards the thresholds are
-    fixed where glibc's dynamic rule ends (mmap 32 MiB, trim 64 MiB): the step loop's
-    temporaries come from the heap as before (a threshold left low made every one of them
-    a fresh mapping: 3.4 % slower, docs/multi-particle.md). One thread only, as
+    200,000"). Afterwards the thresholds are fixed where glibc's dynamic rule ends (mmap
+    32 MiB, trim 64 MiB): the step loop's temporaries come from the heap as before (a
+    threshold left low made every one of them a fresh mapping: 3.4 % slower,
+    docs/multi-particle.md). One thread only, as
     release_free_memory: a threaded run would fault the new mappings' pages in on both
     threads at once."""
     library = _c_library() if enabled else None

@@ -376,7 +376,8 @@ def carry_history(old_offsets, old_keys, old_rows, old_values, old_overlap, new_
                   overlap):
     """Per-entry contact state of a rebuilt CSR list, taken over from the old one.
 
-    Both lists hold, per row, ascending keys (partner particles j > i, triangle ids or
+    Both lists have the same rows (``old_offsets`` and ``new_offsets`` are each N + 1
+    long: the same particles) and hold, per row, ascending keys (partner particles j > i, triangle ids or
     plane indices); a merge of the two sorted rows copies the history and last overlap
     of every (row, key) present in both. The old histories come as their rows in use
     alone (``old_rows``, ascending entry indices, and ``old_values``; the other rows are
