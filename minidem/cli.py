@@ -362,9 +362,13 @@ def command_docs(args) -> int:
 
     text = scenario.reference_markdown()
     if args.write:
-        from minidem.files import atomic_write
+        from minidem.files import OutputError, atomic_write
 
-        atomic_write(args.write, text)
+        try:
+            atomic_write(args.write, text)
+        except OutputError as exc:  # not a run: the main handler's "run failed" would mislead
+            print(f"minidem: docs: {exc}", file=sys.stderr)
+            return EXIT_FAILURE
     else:
         print(text, end="")  # the bytes --write writes: `minidem docs > FILE` is the same file
     return EXIT_OK

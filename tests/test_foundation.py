@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
 import warnings
@@ -174,6 +175,24 @@ def test_minidem_run_set_overrides(tmp_path):
     assert written["law_parameters"]["friction"] == 0.2
     # gross sliding with the overridden friction (eq 8): the override reached the physics
     assert written["y2"] == pytest.approx(-5.0 * 0.2, abs=1e-3)
+
+
+def test_set_takes_a_key_part_in_quotes_as_toml_writes_it():
+    """scenario-reference.md writes a pair's table [contact.pairs."beads/steel"]: --set takes
+    that key as written (a new user's report, 2026-12-08: the quotes became part of the
+    material's name), the same as the bare form; a quoted part may hold a dot or an '='."""
+    bare = scenario.load_scene(OBLIQUE, ["contact.pairs.glass/glass.friction=0.3"])
+    quoted = scenario.load_scene(OBLIQUE, ['contact.pairs."glass/glass".friction=0.3'])
+    single = scenario.load_scene(OBLIQUE, ["contact.pairs.'glass/glass'.friction = 0.3"])
+    assert bare.pair_parameters == quoted.pair_parameters == single.pair_parameters
+    assert list(bare.pair_parameters.values())[0]["friction"] == 0.3
+    assert scenario.parse_override('a."x.y=z".b=2') == (["a", "x.y=z", "b"], 2)
+    for text, message in (('contact.pairs."glass/glass.friction=0.3', "no '=' outside the key's quotes"),
+                          ('contact.pairs."glass"/glass.friction=0.3', "expected '.' or '='"),
+                          ('contact.pairs.glass"x".friction=0.3', "a quote inside the key part"),
+                          ('contact."".law=hm', "empty key part")):
+        with pytest.raises(scenario.ScenarioError, match=re.escape(message)):
+            scenario.parse_override(text)
 
 
 def test_second_run_reuses_the_compile_cache(tmp_path):

@@ -688,6 +688,16 @@ def test_a_poisson_ratio_of_one_is_refused_naming_it_where_two_such_bodies_touch
     assert code == 2, err
     assert "materials.glass.poisson_ratio = 1: two bodies of such a material have an infinite contact modulus" in err
     assert "Traceback" not in err
+    # the warning that accepts it says so too, and the refusal says how else to keep nu = 1
+    # (a new user read "accepted" then "error", 2026-12-08)
+    assert "nu = 1 only against bodies of other materials" in err
+    assert "or the bodies it touches another material" in err
+
+
+def test_docs_that_cannot_be_written_fail_naming_the_file_not_as_a_run(capsys, tmp_path):
+    (tmp_path / "a_file").write_text("")  # not a directory: nothing can be written under it
+    code, err = main(capsys, "docs", "--write", tmp_path / "a_file" / "scenario-reference.md")
+    assert code == 1 and err.startswith(f"minidem: docs: cannot write {tmp_path / 'a_file'}"), err
 
 
 def test_an_overlap_far_beyond_the_radius_is_refused_and_one_beyond_it_named_when_a_sphere_goes_through(

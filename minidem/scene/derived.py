@@ -165,7 +165,7 @@ def arithmetic(scene, what: str):
                 raise ScenarioError(
                     f"{scene.source}: {what} ({type(exc).__name__}: {exc}): {', '.join(singular)}: two bodies "
                     "of such a material have an infinite contact modulus E / (1 - nu^2); give a Poisson ratio "
-                    "below 1 (the paper's kappa studies go up to 5/6)") from None
+                    "below 1 (the paper's kappa studies go up to 5/6), or the bodies it touches another material") from None
             raise refusal(scene, f"{what} ({type(exc).__name__}: {exc})") from None
         except LawError as exc:
             # a law whose prepare() or stiffness() overflowed on an extreme input (1e308 Pa):

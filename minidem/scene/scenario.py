@@ -59,7 +59,8 @@ SCHEMA: dict[str, tuple[str, tuple[Key, ...], str]] = {
     "materials": ("tables", (
         Key("youngs_modulus", "float", REQUIRED, "Pa", "Young's modulus E", low=0.0, low_open=True),
         Key("poisson_ratio", "float", REQUIRED, "-", "Poisson ratio nu; (-1, 0.5] is physical, up to 1 is "
-            "accepted with a warning (the paper's kappa studies use nu = 2/3 and 5/6)", low=-1.0, high=1.0,
+            "accepted with a warning (the paper's kappa studies use nu = 2/3 and 5/6); nu = 1 only against bodies of "
+            "other materials (two bodies of nu = 1 have an infinite contact modulus E / (1 - nu^2))", low=-1.0, high=1.0,
             low_open=True),
         Key("density", "float", REQUIRED, "kg/m^3", "mass density", low=0.0, low_open=True),
     ), "Materials by name: `[materials.glass]`. Walls and particles refer to them by name."),
@@ -452,10 +453,8 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     TOML value when it is one (numbers, booleans, arrays, quoted strings), else as a bare string."""
     if "=" not in text:
         raise ScenarioError(f"--set {text!r}: expected KEY=VALUE, e.g. --set impact.angle_deg=30")
-    key, _, value_text = text.partition("=")
-    key = key.strip()
-    if not key or any(not part for part in key.split(".")):
-        raise ScenarioError(f"--set {text!r}: empty key part in {key!r}")
+    key, value_text = _split_assignment(text)
+    path = key_path(key, f"--set {text!r}")
     try:
         value = tomllib.loads(f"v = {value_text.strip()}")["v"]
     except tomllib.TOMLDecodeError:
@@ -463,7 +462,67 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     except RecursionError:
         raise ScenarioError(f"--set {key}=...: the value is nested too deeply to read") from None
     _check_depth(value, f"--set {key}")
-    return key.split("."), value
+    return path, value
+
+
+def _split_assignment(text: str) -> tuple[str, str]:
+    """KEY=VALUE at the first '=' outside a quoted key part (a quoted part may hold one)."""
+    at = 0
+    while at < len(text):
+        if text[at] in "\"'":
+            quote, at = text[at], at + 1
+            while at < len(text) and text[at] != quote:
+                at += 2 if quote == '"' and text[at] == "\\" else 1
+        elif text[at] == "=":
+            return text[:at].strip(), text[at + 1:]
+        at += 1
+    raise ScenarioError(f"--set {text!r}: expected KEY=VALUE, e.g. --set impact.angle_deg=30 (no '=' outside "
+                        "the key's quotes)")
+
+
+def key_path(key: str, context: str) -> list[str]:
+    """A dotted key as TOML writes it -> its parts: 'contact.pairs."beads/steel".friction'
+    -> ['contact', 'pairs', 'beads/steel', 'friction']. A bare part is anything up to the
+    next dot (so 'contact.pairs.beads/steel.friction' needs no quotes); a part in double or
+    single quotes is read as a TOML string and may hold dots. ``context`` starts the error."""
+    parts: list[str] = []
+    at = 0
+    while True:
+        while at < len(key) and key[at] in " \t":
+            at += 1
+        if at < len(key) and key[at] in "\"'":
+            quote, end = key[at], at + 1
+            while end < len(key) and key[end] != quote:
+                end += 2 if quote == '"' and key[end] == "\\" else 1
+            if end >= len(key):
+                raise ScenarioError(f"{context}: the quoted key part starting at {key[at:]!r} has no closing {quote}")
+            try:
+                part = tomllib.loads(f"part = {key[at:end + 1]}")["part"]
+            except tomllib.TOMLDecodeError as exc:
+                raise ScenarioError(f"{context}: the quoted key part {key[at:end + 1]} is not a TOML string "
+                                    f"({exc})") from None
+            at = end + 1
+            while at < len(key) and key[at] in " \t":
+                at += 1
+            if at < len(key) and key[at] != ".":
+                raise ScenarioError(f"{context}: expected '.' or '=' after the quoted key part "
+                                    f"{key[:at]!r}, found {key[at:]!r}")
+        else:
+            end = key.find(".", at)
+            end = len(key) if end < 0 else end
+            part = key[at:end].strip()
+            if any(quote in part for quote in "\"'"):
+                raise ScenarioError(f"{context}: a quote inside the key part {part!r}: quote a whole part, "
+                                    "as in contact.pairs.\"beads/steel\".friction")
+            at = end
+        if not part:
+            raise ScenarioError(f"{context}: empty key part in {key!r}")
+        parts.append(part)
+        if at >= len(key):
+            return parts
+        at += 1  # the dot
+        if at >= len(key):
+            raise ScenarioError(f"{context}: empty key part in {key!r}")
 
 
 def _list_index(part: str) -> int:
@@ -870,7 +929,9 @@ def _materials(data: dict, source: str, errors: _Errors) -> tuple[list[Material]
         nu = values.get("poisson_ratio")
         if isinstance(nu, float) and 0.5 < nu <= 1.0:
             warnings.warn(f"{source}: materials.{name}.poisson_ratio = {nu:g} > 0.5 is not physical; "
-                          "accepted for stiffness-ratio studies (the paper's Table 1)", stacklevel=3)
+                          "accepted for stiffness-ratio studies (the paper's Table 1)"
+                          + ("; nu = 1 only against bodies of other materials (two bodies of it have an infinite "
+                             "contact modulus E / (1 - nu^2))" if nu == 1.0 else ""), stacklevel=3)
         if all(isinstance(values.get(k), float) for k in ("youngs_modulus", "poisson_ratio", "density")):
             materials.append(Material(name, values["youngs_modulus"], values["poisson_ratio"], values["density"]))
     return materials, _MaterialNames(materials, raw_materials, errors)

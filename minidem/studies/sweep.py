@@ -673,14 +673,21 @@ def _directory(args, sweep: SweepPlan) -> Path:
         sweep.base.get("output", {}).get("directory") or Path("out") / Path(args.file).stem)
 
 
+def _is_prefix(one: list[str], other: list[str]) -> bool:
+    """One path leads into the other (or they are the same)."""
+    shorter = min(len(one), len(other))
+    return one[:shorter] == other[:shorter]
+
+
 def refuse_swept_overrides(sweep: SweepPlan, texts, named: str = "--set {}", one_case: str = "--case N") -> None:
     """An override of a key the sweep varies (or of a value inside a swept table, or of a
     table holding a swept key) would be set again by every case: refused. ``named``
     formats an override as the caller was given it, ``one_case`` says how to run one case."""
     for text in texts or []:
-        key = ".".join(scenario.parse_override(text)[0])
-        swept = next((k for k in sweep.keys if key == k or key.startswith(k + ".") or k.startswith(key + ".")),
-                     None)
+        path = scenario.parse_override(text)[0]
+        # as paths, not strings: 'contact.pairs."a/b".friction' is 'contact.pairs.a/b.friction'
+        swept = next((k for k in sweep.keys
+                      if _is_prefix(path, scenario.key_path(k, f"{sweep.source}: sweep.cases key {k!r}"))), None)
         if swept is not None:
             raise ScenarioError(
                 f"{sweep.source}: {named.format(text)}: '{swept}' is varied by the [sweep] (sweep.cases), which "
