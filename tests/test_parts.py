@@ -240,6 +240,12 @@ def old_roll(constants, effective_radius, effective_mass, normal_overlap, contac
     return 0.0, 0.0, 0.0  # a rolling part's arguments before the rolling inertia
 
 
+@numba.njit
+def no_damping(constants, effective_radius, effective_mass, normal_overlap, normal_velocity, normal_stiffness,
+               elastic_normal_force):
+    return 0.0
+
+
 def part(name, function=stiff_normal, kind="normal", **changes):
     fields = dict(name=name, kind=kind, description="a test part", parameters=(), constants=("k",), history=(),
                   prepare=lambda pair, params, prepared: {"k": 1e6}, function=function, provides=("linear",),
@@ -257,6 +263,8 @@ def minidem_register_laws(registry):
     registry.add(part("hertz"))
     registry.add(part("plugin_heat", kind="heat"))
     registry.add(part("plugin_energy", energy=("create",)))
+    registry.add(part("plugin_failing_prepare", no_damping, kind="damping", provides=(), contact_time=None,
+                      prepare=lambda pair, params, prepared: {"k": 1.0 / 0.0}))
     registry.add(part("plugin_roll_overrun", roll_overrun, kind="rolling", constants=(), provides=(),
                       prepare=lambda pair, params, prepared: {}, contact_time=None))
     registry.add(part("plugin_old_roll", old_roll, kind="rolling", constants=(), provides=(),
@@ -310,6 +318,28 @@ def test_a_part_writing_past_its_history_is_named_with_the_layout_of_the_slots(p
     assert check.passed is False
     assert "wrote history[3]; the law declares 3 slot(s) (by part, in order: the law's own 3, rolling " \
            "'plugin_roll_overrun' 0; each part writes its own slice, from its index 0)" in check.value
+
+
+def test_a_part_whose_prepare_fails_is_named_by_the_run_and_by_verify(plugin, monkeypatch):
+    # the run named the law, the materials, and the file and line, not the part
+    # (a plugin author's walk-through, 2026-12-08); verify stopped on an "internal error"
+    # (exit 1, as a failed check) where the run refuses with exit 2
+    from minidem.studies import verify
+
+    assert "plugin_failing_prepare" not in {b.law for b in plugin.broken}
+    scene = scenario.load_scene(OBLIQUE, ['contact.law="hertz+tsuji+mindlin"'])
+    scene.law_name = "hertz+plugin_failing_prepare+mindlin"
+    scene.law_parameters = {"friction": 0.1}
+    with pytest.raises(laws.LawError) as ran:
+        simulation.Simulation(scene, registry=plugin, compile=False)
+    expected = ("law 'hertz+plugin_failing_prepare+mindlin' (minidem + <in-process>): prepare() failed for "
+                "materials '{0}'/'{0}' in its damping part 'plugin_failing_prepare': ZeroDivisionError: "
+                "float division by zero (at ")
+    assert expected.format("glass") in str(ran.value) and "parts_plugin.py:" in str(ran.value)
+    monkeypatch.setattr(laws, "_REGISTRY", plugin)
+    with pytest.raises(laws.LawError) as verified:
+        verify.Battery("hertz+plugin_failing_prepare+mindlin").history_bounds()
+    assert expected.format("paper") in str(verified.value)  # the verify battery's material
 
 
 def test_preset_is_a_named_combination_with_its_defaults(plugin):

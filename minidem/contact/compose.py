@@ -167,7 +167,11 @@ def _prepare_parts(parts, pair, params, prepared: dict, out: dict) -> None:
     ``prepared``) and put its constants into ``out`` as ``kind.name``."""
     for part in parts:
         values = {p.name: params.get(p.name) for p in part.parameters}
-        produced = part.prepare(pair, values, dict(prepared))
+        try:
+            produced = part.prepare(pair, values, dict(prepared))
+        except (Exception, SystemExit) as exc:  # laws.prepare_for_pair names the part from this note
+            exc.add_note(f"in its {part.kind} part '{part.name}'")
+            raise
         if not isinstance(produced, Mapping):
             raise declarations.LawError(f"part '{part.name}': prepare() must return a dict of constants, "
                                 f"got {type(produced).__name__}")

@@ -19,7 +19,7 @@ import numbers
 import os
 import re
 import traceback
-from typing import Mapping
+from typing import Any, Mapping
 
 import pluggy
 
@@ -637,6 +637,26 @@ def _one_line(exc: BaseException) -> str:
     else:  # raised by the machinery itself (a module not found, a hook's wrong arguments)
         where = ""
     return " ".join(f"{type(exc).__name__}: {exc}{where}".split())
+
+
+def prepare_for_pair(law: ContactLaw, distribution: str, pair: ContactPair, params: Mapping[str, Any],
+                     materials: str, source: str = ""):
+    """``law.prepared_constants(pair, params)``, with a failure of the law's prepare() (or of
+    a part's, which compose notes on the exception) turned into a LawError naming the law,
+    its package, the materials ("'glass'/'steel'"), the part and where: every caller (the
+    engine, verify) reports it alike. ``source``: the scenario, when there is one."""
+    try:
+        return law.prepared_constants(pair, params)
+    except LawError:
+        raise
+    except PLUGIN_FAULTS as exc:  # a plugin's prepare() is user code (sys.exit too)
+        # a ValueError is how prepare() refuses parameters (its message is for the user);
+        # anything else is a bug in it: say what and where
+        why = str(exc) if type(exc) is ValueError else _one_line(exc)
+        part = "".join(f" {note}" for note in getattr(exc, "__notes__", ()) if note.startswith("in its "))
+        where = f"{source}: contact: " if source else ""
+        raise LawError(f"{where}law '{law.name}' ({distribution}): prepare() failed for materials {materials}"
+                       f"{part}: {why}") from exc
 
 
 _REGISTRY: LawRegistry | None = None

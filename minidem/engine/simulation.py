@@ -359,22 +359,13 @@ class Simulation:
         for a in range(n):
             for b in range(a, n):
                 pair = laws.ContactPair.from_materials(materials[a], materials[b], radius, mass, speed)
-                try:
-                    with notice_if_slow(self.notify, f"preparing law '{law.name}' ({self.entry.distribution}) for "
-                                         f"materials '{materials[a].name}'/'{materials[b].name}' (its prepare() "
-                                         f"is still running)"):
-                        row, named = law.prepared_constants(pair, scene.pair_parameters.get((a, b),
-                                                                                            scene.law_parameters))
-                except laws.LawError:
-                    raise
-                except laws.PLUGIN_FAULTS as exc:  # a plugin's prepare() is user code (sys.exit too)
-                    # a ValueError is how prepare() refuses parameters (its message is for the
-                    # user); anything else is a bug in it: say what and where
-                    why = str(exc) if type(exc) is ValueError else laws._one_line(exc)
+                with notice_if_slow(self.notify, f"preparing law '{law.name}' ({self.entry.distribution}) for "
+                                     f"materials '{materials[a].name}'/'{materials[b].name}' (its prepare() "
+                                     f"is still running)"):
                     # the scenario and its key too: the values prepare() refused are the user's
-                    raise laws.LawError(f"{scene.source}: contact: law '{law.name}' ({self.entry.distribution}): "
-                                        f"prepare() failed for materials '{materials[a].name}'/"
-                                        f"'{materials[b].name}': {why}") from exc
+                    row, named = laws.prepare_for_pair(law, self.entry.distribution, pair,
+                                                       scene.pair_parameters.get((a, b), scene.law_parameters),
+                                                       f"'{materials[a].name}'/'{materials[b].name}'", scene.source)
                 self.pair_row[a, b] = self.pair_row[b, a] = len(rows)
                 rows.append(row)
                 self.pairs_[(a, b)] = pair

@@ -177,13 +177,22 @@ class Battery:
                                                              if self.has_parameter("restitution") else []))
         scene = result.scene
         radius, mass = float(scene.radius[0]), float(scene.mass[0])
-        pair = laws.ContactPair.from_materials(scene.materials[0], scene.materials[0], radius, mass, 5.0)
-        _, constants = self.law.prepared_constants(pair, scene.law_parameters)
+        pair, _, constants = self.prepared(scene, radius, mass)
         expected = laws.law_contact_time(self.law, pair, constants, radius, mass, 5.0)
         error = summary["contact_duration_s"] / expected - 1.0
         return [Check("normal-impact duration", abs(error) <= 5e-3,
                       f"{summary['contact_duration_s']:.6g} s vs {expected:.6g} s ({error:+.2%})", "within 0.5 %",
                       "the law's own contact_time (Hertz eq 13 when it declares none)")]
+
+    def prepared(self, scene, radius: float, mass: float):
+        """(the pair of the scene's sphere and its wall, the law's constants as the force
+        function reads them, the same by name), at the impact's 5 m/s: a prepare() that
+        fails is reported as ``minidem run`` reports it (exit 2), not as a failed check."""
+        material = scene.materials[0]
+        pair = laws.ContactPair.from_materials(material, material, radius, mass, 5.0)
+        row, constants = laws.prepare_for_pair(self.law, self.entry.distribution, pair, scene.law_parameters,
+                                               f"'{material.name}'/'{material.name}'")
+        return pair, row, constants
 
     def history_bounds(self) -> list[Check]:
         """The force function writes only the history slots the law declares
@@ -192,8 +201,7 @@ class Battery:
         scene = scenario.build_scene(copy.deepcopy(self.base), source=f"<verify {self.law.name}>",
                                      output_directory="-")
         radius, mass = float(scene.radius[0]), float(scene.mass[0])
-        pair = laws.ContactPair.from_materials(scene.materials[0], scene.materials[0], radius, mass, 5.0)
-        row, constants = self.law.prepared_constants(pair, scene.law_parameters)
+        pair, row, constants = self.prepared(scene, radius, mass)
         duration = laws.law_contact_time(self.law, pair, constants, radius, mass, 5.0)
         size = self.law.history_size
         try:
@@ -219,8 +227,7 @@ class Battery:
         scene = scenario.build_scene(copy.deepcopy(self.base), source=f"<verify {self.law.name}>",
                                      output_directory="-")
         radius, mass, inertia = float(scene.radius[0]), float(scene.mass[0]), float(scene.inertia[0])
-        pair = laws.ContactPair.from_materials(scene.materials[0], scene.materials[0], radius, mass, 5.0)
-        _, constants = self.law.prepared_constants(pair, scene.law_parameters)
+        pair, _, constants = self.prepared(scene, radius, mass)
         bound = float(self.law.supply_bound(pair, constants, radius))
         elastic = ["contact.restitution=1.0"] if self.has_parameter("restitution") else []
         checks, worst, runs = [], -math.inf, []
