@@ -265,6 +265,8 @@ def minidem_register_laws(registry):
     registry.add(part("plugin_energy", energy=("create",)))
     registry.add(part("plugin_failing_prepare", no_damping, kind="damping", provides=(), contact_time=None,
                       prepare=lambda pair, params, prepared: {"k": 1.0 / 0.0}))
+    registry.add(part("plugin_text_constant", no_damping, kind="damping", provides=(), contact_time=None,
+                      prepare=lambda pair, params, prepared: {"k": "abc"}))
     registry.add(part("plugin_roll_overrun", roll_overrun, kind="rolling", constants=(), provides=(),
                       prepare=lambda pair, params, prepared: {}, contact_time=None))
     registry.add(part("plugin_old_roll", old_roll, kind="rolling", constants=(), provides=(),
@@ -336,6 +338,13 @@ def test_a_part_whose_prepare_fails_is_named_by_the_run_and_by_verify(plugin, mo
                 "materials '{0}'/'{0}' in its damping part 'plugin_failing_prepare': ZeroDivisionError: "
                 "float division by zero (at ")
     assert expected.format("glass") in str(ran.value) and "parts_plugin.py:" in str(ran.value)
+    # a constant that is not a number is named with its part too, not as a plugin's
+    # ValueError (float('abc'); the same review)
+    scene.law_name = "hertz+plugin_text_constant+mindlin"
+    with pytest.raises(laws.LawError, match=r"damping part 'plugin_text_constant': prepare\(\) \(.*parts_plugin.py, "
+                                            r"line \d+\) must give each constant as a number, got k='abc'"):
+        simulation.Simulation(scene, registry=plugin, compile=False)
+    scene.law_name = "hertz+plugin_failing_prepare+mindlin"
     monkeypatch.setattr(laws, "_REGISTRY", plugin)
     with pytest.raises(laws.LawError) as verified:
         verify.Battery("hertz+plugin_failing_prepare+mindlin").history_bounds()

@@ -467,3 +467,22 @@ def test_a_warning_of_the_plan_is_printed_once_not_again_by_its_case(tmp_path, c
                      "--set", "run.dt=5e-5", "--set", "run.allow_unstable_dt=true"])
     assert code == 0
     assert capsys.readouterr().err.count("allowed by run.allow_unstable_dt") == 1
+
+
+def test_swept_keys_are_compared_as_paths_whatever_their_quotes():
+    """A key of sweep.cases may quote its parts as TOML allows: '"sweep".workers' is still
+    the sweep's own setting (it ran, twice alike, once --set read quoted parts: a review,
+    2026-12-08), and '"impact"."angle_deg"' is the angle that together and the abscissa
+    name, and the same key as its bare spelling."""
+    data = scenario.read_toml(OBLIQUE)
+    data["sweep"] = {"cases": {'"sweep".workers': [1, 2]}, "figures": []}
+    with pytest.raises(scenario.ScenarioError, match="a sweep cannot sweep its own settings"):
+        sweep.plan(data, str(OBLIQUE))
+    data["sweep"] = {"cases": {'"impact"."angle_deg"': [5.0, 45.0], "contact.friction": [0.1, 0.3]},
+                     "together": [["impact.angle_deg", "contact.friction"]], "figures": []}
+    plan = sweep.plan(data, str(OBLIQUE))
+    assert plan.keys == ["impact.angle_deg", "contact.friction"] and plan.abscissa == "impact.angle_deg"
+    assert plan.cases == [(5.0, 0.1), (45.0, 0.3)]
+    data["sweep"] = {"cases": {'"impact".angle_deg': [5.0], "impact.angle_deg": [45.0]}, "figures": []}
+    with pytest.raises(scenario.ScenarioError, match="is impact.angle_deg, swept already"):
+        sweep.plan(data, str(OBLIQUE))

@@ -178,6 +178,11 @@ def _prepare_parts(parts, pair, params, prepared: dict, out: dict) -> None:
         missing = [c for c in part.constants if c not in produced]
         if missing:
             raise declarations.LawError(f"part '{part.name}': prepare() did not return constants {missing}")
+        not_numbers = {c: produced[c] for c in part.constants if not declarations._is_number(produced[c])}
+        if not_numbers:
+            raise declarations.LawError(
+                f"{part.kind} part '{part.name}': prepare() ({declarations.located(part.prepare)}) must give each "
+                f"constant as a number, got {', '.join(f'{c}={v!r}' for c, v in not_numbers.items())}")
         prepared[part.kind] = {c: float(produced[c]) for c in part.constants}
         out.update({f"{part.kind}.{c}": v for c, v in prepared[part.kind].items()})
 

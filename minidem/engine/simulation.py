@@ -362,7 +362,7 @@ class Simulation:
                 with notice_if_slow(self.notify, f"preparing law '{law.name}' ({self.entry.distribution}) for "
                                      f"materials '{materials[a].name}'/'{materials[b].name}' (its prepare() "
                                      f"is still running)"):
-                    # the scenario and its key too: the values prepare() refused are the user's
+                    # the scenario too (scene.source): the values prepare() refused are the user's
                     row, named = laws.prepare_for_pair(law, self.entry.distribution, pair,
                                                        scene.pair_parameters.get((a, b), scene.law_parameters),
                                                        f"'{materials[a].name}'/'{materials[b].name}'", scene.source)

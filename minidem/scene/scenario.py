@@ -466,15 +466,22 @@ def parse_override(text: str) -> tuple[list[str], Any]:
 
 
 def _split_assignment(text: str) -> tuple[str, str]:
-    """KEY=VALUE at the first '=' outside a quoted key part (a quoted part may hold one)."""
-    at = 0
+    """KEY=VALUE at the first '=' outside a quoted key part (a quoted part may hold one). A
+    quote opens a quoted part only where a part starts (as in TOML): o'brien is a bare part."""
+    at, part_starts = 0, True
     while at < len(text):
-        if text[at] in "\"'":
-            quote, at = text[at], at + 1
-            while at < len(text) and text[at] != quote:
-                at += 2 if quote == '"' and text[at] == "\\" else 1
-        elif text[at] == "=":
+        char = text[at]
+        if part_starts and char in "\"'":
+            at += 1
+            while at < len(text) and text[at] != char:
+                at += 2 if char == '"' and text[at] == "\\" else 1
+            part_starts = False
+        elif char == "=":
             return text[:at].strip(), text[at + 1:]
+        elif char == ".":
+            part_starts = True
+        elif not char.isspace():
+            part_starts = False
         at += 1
     raise ScenarioError(f"--set {text!r}: expected KEY=VALUE, e.g. --set impact.angle_deg=30 (no '=' outside "
                         "the key's quotes)")
@@ -483,12 +490,13 @@ def _split_assignment(text: str) -> tuple[str, str]:
 def key_path(key: str, context: str) -> list[str]:
     """A dotted key as TOML writes it -> its parts: 'contact.pairs."beads/steel".friction'
     -> ['contact', 'pairs', 'beads/steel', 'friction']. A bare part is anything up to the
-    next dot (so 'contact.pairs.beads/steel.friction' needs no quotes); a part in double or
-    single quotes is read as a TOML string and may hold dots. ``context`` starts the error."""
+    next dot (so 'contact.pairs.beads/steel.friction' needs no quotes); a part that starts
+    with a double or single quote is read as a TOML string and may hold dots or '='.
+    ``context`` starts the error."""
     parts: list[str] = []
     at = 0
     while True:
-        while at < len(key) and key[at] in " \t":
+        while at < len(key) and key[at].isspace():
             at += 1
         if at < len(key) and key[at] in "\"'":
             quote, end = key[at], at + 1
@@ -502,18 +510,16 @@ def key_path(key: str, context: str) -> list[str]:
                 raise ScenarioError(f"{context}: the quoted key part {key[at:end + 1]} is not a TOML string "
                                     f"({exc})") from None
             at = end + 1
-            while at < len(key) and key[at] in " \t":
+            while at < len(key) and key[at].isspace():
                 at += 1
             if at < len(key) and key[at] != ".":
                 raise ScenarioError(f"{context}: expected '.' or '=' after the quoted key part "
-                                    f"{key[:at]!r}, found {key[at:]!r}")
+                                    f"{key[:at]!r}, found {key[at:]!r} (quote a whole part, as in "
+                                    "contact.pairs.\"beads/steel\".friction)")
         else:
             end = key.find(".", at)
             end = len(key) if end < 0 else end
             part = key[at:end].strip()
-            if any(quote in part for quote in "\"'"):
-                raise ScenarioError(f"{context}: a quote inside the key part {part!r}: quote a whole part, "
-                                    "as in contact.pairs.\"beads/steel\".friction")
             at = end
         if not part:
             raise ScenarioError(f"{context}: empty key part in {key!r}")
@@ -523,6 +529,15 @@ def key_path(key: str, context: str) -> list[str]:
         at += 1  # the dot
         if at >= len(key):
             raise ScenarioError(f"{context}: empty key part in {key!r}")
+
+
+def canonical_key(key: str, context: str) -> str:
+    """One spelling of a dotted key, so that keys are compared as paths: each part bare
+    where it can be ('"sweep".workers' -> 'sweep.workers'), else quoted."""
+    def spelled(part: str) -> str:
+        bare = (part == part.strip() and not any(c in part for c in ".=") and part[0] not in "\"'")
+        return part if bare else json.dumps(part)
+    return ".".join(spelled(part) for part in key_path(key, context))
 
 
 def _list_index(part: str) -> int:

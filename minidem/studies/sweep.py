@@ -140,8 +140,15 @@ def plan(data: dict, source: str, check_cases: bool = True) -> SweepPlan:
         errors.add("sweep.cases", 'is empty: give at least one key and its values, e.g. {"impact.angle_deg" = '
                    "[1.0, 5.0]} (a single run needs no [sweep] table)")
     keys, columns = [], []
-    for key, options in cases_table.items():
-        where = f'sweep.cases."{key}"'
+    for given, options in cases_table.items():
+        where = f'sweep.cases."{given}"'
+        # compared as paths: '"impact".angle_deg' is impact.angle_deg everywhere below
+        key = _canonical(given, where, errors)
+        if key is None:
+            continue
+        if key in keys:
+            errors.add(where, f"is {key}, swept already")
+            continue
         if not isinstance(options, list) or not options:
             errors.add(where, f"expected a non-empty list of values, got {options!r}")
             continue
@@ -150,7 +157,14 @@ def plan(data: dict, source: str, check_cases: bool = True) -> SweepPlan:
             continue
         keys.append(key)
         columns.append(options)
-    axes, grouped = _axes(keys, columns, values["together"], values["abscissa"], errors)
+    def spelled(key, where):  # a key as the cases are keyed; anything else is left to _axes to refuse
+        return (_canonical(key, where, errors) or key) if isinstance(key, str) else key
+
+    together = [[spelled(k, f"sweep.together[{i}]") for k in group] if isinstance(group, list) else group
+                for i, group in enumerate(values["together"] or [])]
+    if isinstance(values["abscissa"], str):
+        values["abscissa"] = spelled(values["abscissa"], "sweep.abscissa")
+    axes, grouped = _axes(keys, columns, together, values["abscissa"], errors)
     unknown = [f for f in values["figures"] if not isinstance(f, str) or f not in FIGURES]
     if unknown:
         errors.add("sweep.figures", f"unknown figure(s) {unknown}; valid: {', '.join(FIGURES)}")
@@ -159,7 +173,7 @@ def plan(data: dict, source: str, check_cases: bool = True) -> SweepPlan:
         if traced in values["figures"] and not values["keep_traces"]:
             errors.add("sweep.figures", f'"{traced}" plots the cases\' traces: it needs sweep.keep_traces = true')
     paper = [f for f in values["figures"] if f in ("y1", "y2", "et", "force_displacement")]
-    no_impact = "impact" not in data and not any(str(k).split(".")[0] == "impact" for k in cases_table)
+    no_impact = "impact" not in data and not any(k.split(".")[0] == "impact" for k in keys)
     if paper and no_impact and "figures" not in data["sweep"]:
         values["figures"] = []  # the default figures are an impact's: a scene sweep draws none
     elif paper and no_impact:
@@ -205,6 +219,15 @@ def plan(data: dict, source: str, check_cases: bool = True) -> SweepPlan:
         warnings.warn(message, stacklevel=2)  # once each, not once per case
     errors.raise_if_any()
     return sweep
+
+
+def _canonical(key: str, where: str, errors) -> str | None:
+    """``scenario.canonical_key``, a key it cannot read reported at ``where`` (None)."""
+    try:
+        return scenario.canonical_key(key, where)
+    except ScenarioError as exc:
+        errors.add(where, str(exc).removeprefix(f"{where}: "))
+        return None
 
 
 def _axes(keys, columns, together, abscissa, errors) -> tuple[list, tuple]:
