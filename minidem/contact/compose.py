@@ -170,7 +170,7 @@ def _prepare_parts(parts, pair, params, prepared: dict, out: dict) -> None:
         try:
             produced = part.prepare(pair, values, dict(prepared))
         except (Exception, SystemExit) as exc:  # laws.prepare_for_pair names the part from this note
-            exc.add_note(f"in its {part.kind} part '{part.name}'")
+            exc.add_note(f"{declarations.PART_NOTE_PREFIX}{part.kind} part '{part.name}'")
             raise
         if not isinstance(produced, Mapping):
             raise declarations.LawError(f"part '{part.name}': prepare() must return a dict of constants, "

@@ -57,6 +57,11 @@ def _is_number(value) -> bool:
     return True
 
 
+# compose notes a part's failing prepare() on the exception in flight, as this prefix and
+# "KIND part 'NAME'"; laws.prepare_for_pair puts the note into the error it reports
+PART_NOTE_PREFIX = "in its "
+
+
 def located(func) -> str:
     """``name in file, line N`` of a Python function, as error messages name it (the
     law's hooks here, its force and parts' functions in minidem.engine.law_signature)."""

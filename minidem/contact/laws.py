@@ -31,6 +31,7 @@ from minidem.contact.declarations import (
     FRICTION_LOAD_ARGUMENTS,
     KINDS,
     PART_ARGUMENTS,
+    PART_NOTE_PREFIX,
     ContactLaw,
     ContactPair,
     ContactPart,
@@ -653,7 +654,7 @@ def prepare_for_pair(law: ContactLaw, distribution: str, pair: ContactPair, para
         # a ValueError is how prepare() refuses parameters (its message is for the user);
         # anything else is a bug in it: say what and where
         why = str(exc) if type(exc) is ValueError else _one_line(exc)
-        part = "".join(f" {note}" for note in getattr(exc, "__notes__", ()) if note.startswith("in its "))
+        part = "".join(f" {note}" for note in getattr(exc, "__notes__", ()) if note.startswith(PART_NOTE_PREFIX))
         where = f"{source}: contact: " if source else ""
         raise LawError(f"{where}law '{law.name}' ({distribution}): prepare() failed for materials {materials}"
                        f"{part}: {why}") from exc

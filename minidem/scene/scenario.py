@@ -448,13 +448,16 @@ def _toml_error(exc: tomllib.TOMLDecodeError, text: str) -> str:
     return message
 
 
+_NO_ASSIGNMENT = "expected KEY=VALUE, e.g. --set impact.angle_deg=30"
+
+
 def parse_override(text: str) -> tuple[list[str], Any]:
     """'impact.angle_deg=30' -> (['impact', 'angle_deg'], 30.0). The value is read as a
     TOML value when it is one (numbers, booleans, arrays, quoted strings), else as a bare string."""
     if "=" not in text:
-        raise ScenarioError(f"--set {text!r}: expected KEY=VALUE, e.g. --set impact.angle_deg=30")
-    key, value_text = _split_assignment(text)
-    path = key_path(key, f"--set {text!r}")
+        raise ScenarioError(f"--set {text!r}: {_NO_ASSIGNMENT}")
+    path, end = _read_key(text, f"--set {text!r}", assignment=True)
+    key, value_text = text[:end].strip(), text[end + 1:]
     try:
         value = tomllib.loads(f"v = {value_text.strip()}")["v"]
     except tomllib.TOMLDecodeError:
@@ -465,70 +468,59 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     return path, value
 
 
-def _split_assignment(text: str) -> tuple[str, str]:
-    """KEY=VALUE at the first '=' outside a quoted key part (a quoted part may hold one). A
-    quote opens a quoted part only where a part starts (as in TOML): o'brien is a bare part."""
-    at, part_starts = 0, True
-    while at < len(text):
-        char = text[at]
-        if part_starts and char in "\"'":
-            at += 1
-            while at < len(text) and text[at] != char:
-                at += 2 if char == '"' and text[at] == "\\" else 1
-            part_starts = False
-        elif char == "=":
-            return text[:at].strip(), text[at + 1:]
-        elif char == ".":
-            part_starts = True
-        elif not char.isspace():
-            part_starts = False
-        at += 1
-    raise ScenarioError(f"--set {text!r}: expected KEY=VALUE, e.g. --set impact.angle_deg=30 (no '=' outside "
-                        "the key's quotes)")
-
-
 def key_path(key: str, context: str) -> list[str]:
     """A dotted key as TOML writes it -> its parts: 'contact.pairs."beads/steel".friction'
-    -> ['contact', 'pairs', 'beads/steel', 'friction']. A bare part is anything up to the
-    next dot (so 'contact.pairs.beads/steel.friction' needs no quotes); a part that starts
-    with a double or single quote is read as a TOML string and may hold dots or '='.
-    ``context`` starts the error."""
+    -> ['contact', 'pairs', 'beads/steel', 'friction']. ``context`` starts the error."""
+    return _read_key(key, context, assignment=False)[0]
+
+
+def _read_key(text: str, context: str, assignment: bool) -> tuple[list[str], int]:
+    """(the parts of the dotted key that ``text`` starts with, where the key ends): at the
+    first '=' outside a quoted part when ``assignment`` (KEY=VALUE), else at the end. A bare
+    part runs to the next dot (so 'contact.pairs.beads/steel.friction' needs no quotes); a
+    part that starts with a double or single quote is read as a TOML string and may hold dots
+    or '='. As in TOML, a quote elsewhere is a character of a bare part (o'brien)."""
+    stops = ".=" if assignment else "."
     parts: list[str] = []
     at = 0
     while True:
-        while at < len(key) and key[at].isspace():
+        while at < len(text) and text[at].isspace():
             at += 1
-        if at < len(key) and key[at] in "\"'":
-            quote, end = key[at], at + 1
-            while end < len(key) and key[end] != quote:
-                end += 2 if quote == '"' and key[end] == "\\" else 1
-            if end >= len(key):
-                raise ScenarioError(f"{context}: the quoted key part starting at {key[at:]!r} has no closing {quote}")
+        if at < len(text) and text[at] in "\"'":
+            quote, end = text[at], at + 1
+            while end < len(text) and text[end] != quote:
+                end += 2 if quote == '"' and text[end] == "\\" else 1
+            if end >= len(text):
+                raise ScenarioError(f"{context}: {_NO_ASSIGNMENT} (no '=' outside the key's quotes)" if assignment
+                                    else f"{context}: the quoted key part starting at {text[at:]!r} has no "
+                                         f"closing {quote}")
             try:
-                part = tomllib.loads(f"part = {key[at:end + 1]}")["part"]
+                part = tomllib.loads(f"part = {text[at:end + 1]}")["part"]
             except tomllib.TOMLDecodeError as exc:
-                raise ScenarioError(f"{context}: the quoted key part {key[at:end + 1]} is not a TOML string "
+                raise ScenarioError(f"{context}: the quoted key part {text[at:end + 1]} is not a TOML string "
                                     f"({exc})") from None
             at = end + 1
-            while at < len(key) and key[at].isspace():
+            while at < len(text) and text[at].isspace():
                 at += 1
-            if at < len(key) and key[at] != ".":
+            if at < len(text) and text[at] not in stops:
                 raise ScenarioError(f"{context}: expected '.' or '=' after the quoted key part "
-                                    f"{key[:at]!r}, found {key[at:]!r} (quote a whole part, as in "
+                                    f"{text[:at]!r}, found {text[at:]!r} (quote a whole part, as in "
                                     "contact.pairs.\"beads/steel\".friction)")
         else:
-            end = key.find(".", at)
-            end = len(key) if end < 0 else end
-            part = key[at:end].strip()
-            at = end
+            end = at
+            while end < len(text) and text[end] not in stops:
+                end += 1
+            part, at = text[at:end].strip(), end
         if not part:
+            key = text.partition("=")[0].strip() if assignment else text
             raise ScenarioError(f"{context}: empty key part in {key!r}")
         parts.append(part)
-        if at >= len(key):
-            return parts
-        at += 1  # the dot
-        if at >= len(key):
-            raise ScenarioError(f"{context}: empty key part in {key!r}")
+        if at < len(text) and text[at] == ".":
+            at += 1  # the next part: an empty one (a trailing dot) is refused above
+            continue
+        if assignment and at >= len(text):
+            raise ScenarioError(f"{context}: {_NO_ASSIGNMENT} (no '=' outside the key's quotes)")
+        return parts, at
 
 
 def canonical_key(key: str, context: str) -> str:
