@@ -33,13 +33,18 @@ OPENING_KICK = {"velocity_verlet": 0.5, "symplectic_euler": 1.0, "analytic_fligh
 
 
 @numba.njit(cache=True, inline="always")
-def kick(p, velocity, force_on_p, inverse_mass, duration):
-    """v += F duration / m, F a 3-tuple (the kernel's force pass hands it over without
-    storing it)."""
-    scale = duration * inverse_mass[p]
-    velocity[p, 0] += scale * force_on_p[0]
-    velocity[p, 1] += scale * force_on_p[1]
-    velocity[p, 2] += scale * force_on_p[2]
+def kicked(velocity_of_p, force_on_p, inverse_mass_of_p, duration):
+    """v + F duration / m, v and F 3-tuples: the kernel keeps a particle's velocity in
+    registers from its closing kick through its opening kick and drift, and stores it
+    once. Stored and read back between them (numba cannot tell the velocity and position
+    arrays apart), each particle waited on a chain of round trips through memory, which
+    the processor could not overlap with the next particle's work in the kernel's long
+    loop body: 4 % of the settle scene's step at N = 20,000, lattice (one thread, 11.52
+    against 11.07 s, medians of three alternated runs; jitter unchanged). The same
+    operations in the same order, so the same bits."""
+    scale = duration * inverse_mass_of_p
+    return (velocity_of_p[0] + scale * force_on_p[0], velocity_of_p[1] + scale * force_on_p[1],
+            velocity_of_p[2] + scale * force_on_p[2])
 
 
 @numba.njit(cache=True, inline="always")
@@ -65,10 +70,10 @@ def kick_spin(p, angular_velocity, torque_on_p, inverse_inertia, duration):
 
 
 @numba.njit(cache=True, inline="always")
-def drift(p, position, velocity, dt):
-    position[p, 0] += dt * velocity[p, 0]
-    position[p, 1] += dt * velocity[p, 1]
-    position[p, 2] += dt * velocity[p, 2]
+def drifted(position_of_p, velocity_of_p, dt):
+    """x + v dt, x and v 3-tuples (see ``kicked``)."""
+    return (position_of_p[0] + dt * velocity_of_p[0], position_of_p[1] + dt * velocity_of_p[1],
+            position_of_p[2] + dt * velocity_of_p[2])
 
 
 def time_to_touch(gap: float, approach_speed: float, approach_acceleration: float) -> float:
@@ -131,12 +136,20 @@ def flight_to_first_touch(position, velocity, radius, wall_point, wall_normal, g
 
 @numba.njit(cache=True, inline="always")
 def particle_kinetic_energy(p, mass, inertia, velocity, angular_velocity):
-    """Translational plus rotational kinetic energy of particle p (J). Products, not
-    ``** 2``: numba compiles a float power into a call of the C library's pow (six a
-    particle, 90 % of the cost of a kinetic-energy pass)."""
-    vx, vy, vz = velocity[p, 0], velocity[p, 1], velocity[p, 2]
-    wx, wy, wz = angular_velocity[p, 0], angular_velocity[p, 1], angular_velocity[p, 2]
-    return 0.5 * (mass[p] * (vx * vx + vy * vy + vz * vz) + inertia[p] * (wx * wx + wy * wy + wz * wz))
+    """Translational plus rotational kinetic energy of particle p (J)."""
+    return kinetic_energy_of(mass[p], inertia[p], (velocity[p, 0], velocity[p, 1], velocity[p, 2]),
+                             (angular_velocity[p, 0], angular_velocity[p, 1], angular_velocity[p, 2]))
+
+
+@numba.njit(cache=True, inline="always")
+def kinetic_energy_of(mass_of_p, inertia_of_p, velocity_of_p, angular_velocity_of_p):
+    """Translational plus rotational kinetic energy (J) of a sphere of the given mass and
+    moment of inertia, its velocity and spin 3-tuples. Products, not ``** 2``: numba
+    compiles a float power into a call of the C library's pow (six a particle, 90 % of
+    the cost of a kinetic-energy pass)."""
+    vx, vy, vz = velocity_of_p
+    wx, wy, wz = angular_velocity_of_p
+    return 0.5 * (mass_of_p * (vx * vx + vy * vy + vz * vz) + inertia_of_p * (wx * wx + wy * wy + wz * wz))
 
 
 # particles a block of the kinetic energy's sum: the sum is taken block by block and the

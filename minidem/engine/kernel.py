@@ -96,7 +96,7 @@ from minidem.geometry.primitives import (
     turned_increment,
 )
 from minidem.contact.history import history_column, history_row, history_row_of
-from minidem.engine.integrate import block_sum, drift, kick, kick_spin, particle_kinetic_energy, turns
+from minidem.engine.integrate import block_sum, drifted, kick_spin, kicked, kinetic_energy_of, turns
 # the blocks of particles per thread are chosen outside the kernel (advance's bounds and
 # first_partner); named here too, where the kernel's two passes are described
 from minidem.engine.blocks import cycle_counter, defer_finishing  # noqa: F401
@@ -1135,16 +1135,21 @@ def finish_range(first, last, finished_from, first_partner, particles, pairs, dt
             torque[p, 0], torque[p, 1], torque[p, 2] = 0.0, 0.0, 0.0
         # the spin only under a torque (kick_spin): a falling sphere leaves it alone
         turning = SPIN and turns((tx, ty, tz))
+        # the velocity in registers from the closing kick to the drift (integrate.kicked)
+        velocity_of_p = (velocity[p, 0], velocity[p, 1], velocity[p, 2])
         if CLOSING_KICK > 0.0:
-            kick(p, velocity, (fx, fy, fz), inverse_mass, CLOSING_KICK * dt)
+            velocity_of_p = kicked(velocity_of_p, (fx, fy, fz), inverse_mass[p], CLOSING_KICK * dt)
             if turning:
                 kick_spin(p, angular_velocity, (tx, ty, tz), inverse_inertia, CLOSING_KICK * dt)
         if sampling:
-            particle_energy[p] = particle_kinetic_energy(p, mass, inertia, velocity, angular_velocity)
+            particle_energy[p] = kinetic_energy_of(mass[p], inertia[p], velocity_of_p, (
+                angular_velocity[p, 0], angular_velocity[p, 1], angular_velocity[p, 2]))
         if drift_on and turning:
             kick_spin(p, angular_velocity, (tx, ty, tz), inverse_inertia, OPENING_KICK * dt)
-        if drift_on and kick_drift_one(p, position, velocity, (fx, fy, fz), inverse_mass, dt, position_at_build,
-                                        half_skin_squared):
+        if CLOSING_KICK > 0.0 and not drift_on:
+            velocity[p, 0], velocity[p, 1], velocity[p, 2] = velocity_of_p
+        if drift_on and kick_drift_one(p, position, velocity, velocity_of_p, (fx, fy, fz), inverse_mass, dt,
+                                        position_at_build, half_skin_squared):
             moved_too_far += 1
     return moved_too_far
 
@@ -1200,17 +1205,21 @@ def finish_kick_drift(particles, pairs, dt, drift_on, position_at_build, half_sk
 
 
 @numba.njit(cache=True, inline="always")
-def kick_drift_one(p, position, velocity, force_on_p, inverse_mass, dt, position_at_build, half_skin_squared):
-    """Opening kick of the velocity (by the force given, a 3-tuple; the spin's is the
-    caller's, ``kick_spin``) and drift of particle p; True when it has moved more than
-    half the skin since the neighbour list was built."""
-    kick(p, velocity, force_on_p, inverse_mass, OPENING_KICK * dt)
-    drift(p, position, velocity, dt)
+def kick_drift_one(p, position, velocity, velocity_of_p, force_on_p, inverse_mass, dt, position_at_build,
+                   half_skin_squared):
+    """Opening kick of particle p's velocity ``velocity_of_p`` (a 3-tuple: its row of
+    ``velocity`` is written here) by the force given (a 3-tuple; the spin's kick is the
+    caller's, ``kick_spin``) and drift of p; True when it has moved more than half the
+    skin since the neighbour list was built."""
+    opened = kicked(velocity_of_p, force_on_p, inverse_mass[p], OPENING_KICK * dt)
+    velocity[p, 0], velocity[p, 1], velocity[p, 2] = opened
+    moved_to = drifted((position[p, 0], position[p, 1], position[p, 2]), opened, dt)
+    position[p, 0], position[p, 1], position[p, 2] = moved_to
     if not CHECK_DISPLACEMENT:
         return False
-    dx = position[p, 0] - position_at_build[p, 0]
-    dy = position[p, 1] - position_at_build[p, 1]
-    dz = position[p, 2] - position_at_build[p, 2]
+    dx = moved_to[0] - position_at_build[p, 0]
+    dy = moved_to[1] - position_at_build[p, 1]
+    dz = moved_to[2] - position_at_build[p, 2]
     return dx * dx + dy * dy + dz * dz > half_skin_squared
 
 
@@ -1224,8 +1233,9 @@ def kick_drift(particles, dt, position_at_build, half_skin_squared):
         if SPIN and turns((torque[p, 0], torque[p, 1], torque[p, 2])):
             kick_spin(p, angular_velocity, (torque[p, 0], torque[p, 1], torque[p, 2]), inverse_inertia,
                       OPENING_KICK * dt)
-        moved = kick_drift_one(p, position, velocity, (force[p, 0], force[p, 1], force[p, 2]), inverse_mass, dt,
-                               position_at_build, half_skin_squared)
+        moved = kick_drift_one(p, position, velocity, (velocity[p, 0], velocity[p, 1], velocity[p, 2]),
+                               (force[p, 0], force[p, 1], force[p, 2]), inverse_mass, dt, position_at_build,
+                               half_skin_squared)
         if END_VELOCITY:  # the rows hold the totals here (a call's start, a restored state)
             last_force[p, 0], last_force[p, 1], last_force[p, 2] = force[p, 0], force[p, 1], force[p, 2]
             last_force[p, 3], last_force[p, 4], last_force[p, 5] = torque[p, 0], torque[p, 1], torque[p, 2]
