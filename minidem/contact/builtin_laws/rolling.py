@@ -171,7 +171,7 @@ SDS_TWISTING = ContactPart(
                 Parameter("twisting_viscosity", 0.0, "N m s/rad", "gamma_tw, the twisting dashpot", low=0.0),
                 Parameter("twisting_friction", None, "m", "mu_tw: the twisting couple is at most mu_tw Fn (a "
                           "length, as LAMMPS' twisting sds; Coulomb friction over a contact disc of radius a "
-                          "gives 2/3 mu a)", low=0.0, required=True)),
+                          "under uniform pressure gives 2/3 mu a)", low=0.0, required=True)),
     constants=SDS_TWISTING_CONSTANTS,
     history=(HistorySlot("twisting_spring_moment", "the spring's couple about the normal on the first body (N m)",
                          exchange=1),),
@@ -187,8 +187,10 @@ SDS_TWISTING = ContactPart(
 def marshall_twisting(constants, effective_radius, effective_mass, normal_overlap, contact_radius, normal_stiffness,
                       normal_force, twisting_increment, twisting_velocity, history):
     """Marshall (2009): a twisting spring M += -k_tw w_t dt, k_tw = 0.5 kt a^2 with the
-    Mindlin stiffness kt = 8 G* a, capped at the torsional sliding limit 2/3 mu Fn a
-    (Coulomb friction over a Hertz contact disc)."""
+    Mindlin stiffness kt = 8 G* a, capped at the torsional sliding limit 2/3 mu Fn a:
+    Coulomb friction over a contact disc under uniform pressure, as Marshall and LAMMPS'
+    twisting marshall take it (under the Hertz pressure the full-slip torque is
+    3 pi/16 mu Fn a, Lubkin 1951, 12 % less)."""
     a = contact_radius
     stiffness = 0.5 * constants[0] * a * a * a
     limit = 2.0 / 3.0 * constants[1] * max(normal_force, 0.0) * a
