@@ -375,7 +375,6 @@ def run(scenario, overrides=None, out: str | Path | None = None, progress: bool 
         directory = scenario_module.prepare_output_directory(scene.output_directory, "out", given.source)
         policy = checkpoint.Policy(directory, scene.checkpoint_interval, scene.checkpoint_wall_interval)
         checkpoint.remove_stale_temporaries(directory)
-        (directory / checkpoint.LAST_GOOD).unlink(missing_ok=True)
     sim = simulation.Simulation(scene)
     if directory is not None and scene.vtk:
         from minidem.results.vtk import SimulationFrames
@@ -391,7 +390,8 @@ def run(scenario, overrides=None, out: str | Path | None = None, progress: bool 
                 frames.close()
             if bar is not None:
                 bar.close()
-        summary = write_run_files(directory, result) if directory is not None else analysis.summary(result)
+        summary = (write_run_files(directory, result, wrote_series=frames is not None and frames.frames > 0)
+                   if directory is not None else analysis.summary(result))
         if frames is not None:
             frames.succeeded()
     except (run_loop.RunFailure, OutputError):

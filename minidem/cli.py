@@ -129,7 +129,6 @@ def command_run(args) -> int:
                   f"(t = {resume_from[1]['time']:.6g} s) of {resume_from[1]['total_steps']}")
     # files a killed process left half-way through an atomic write (never under a final name)
     checkpoint.remove_stale_temporaries(directory)
-    (directory / checkpoint.LAST_GOOD).unlink(missing_ok=True)  # from an earlier failed run
     if not args.quiet and sim.start_time > 0.0:
         print(f"  analytic flight to the first touch: the steps start at t = {sim.start_time:.6g} s")
     frames = None
@@ -164,7 +163,7 @@ def command_run(args) -> int:
             if frames is not None:
                 frames.close()
     try:
-        summary = write_run_files(directory, result)
+        summary = write_run_files(directory, result, wrote_series=frames is not None and frames.frames > 0)
     except OutputError:
         _say_set_aside(directory, started)
         raise

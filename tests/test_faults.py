@@ -339,6 +339,53 @@ def test_a_failed_run_keeps_the_earlier_runs_vtk_series_and_a_success_replaces_i
     assert again.returncode == 0 and not (tmp_path / "previous_series").exists()
     assert len(ET.parse(tmp_path / "particles.pvd").getroot().findall(".//DataSet")) == len(frames)
 
+def test_a_run_without_frames_puts_an_earlier_runs_series_aside(tmp_path):
+    # A run that writes no VTK series (output.vtk = false here) into a directory holding an
+    # earlier run's series left that series beside its own summary: open_results and
+    # ParaView read it as this run's (a user's audit, 2026-12-08: the oblique impact's
+    # summary beside a Newton's cradle's five-ball frames). It goes to previous_series/ with
+    # a warning, as a run with frames puts it at its first frame; walls.vtu goes with it,
+    # and the next run with frames that succeeds empties the folder.
+    import minidem
+
+    with_frames = SMALL_SETTLE + ["run.end_time=0.01", "output.vtk=true"]
+    minidem.run(SETTLE, with_frames, out=tmp_path)
+    listed = [f.get("file") for f in ET.parse(tmp_path / "particles.pvd").getroot().findall(".//DataSet")]
+    assert len(listed) >= 2 and (tmp_path / "walls.vtu").is_file()
+    with pytest.warns(UserWarning, match="the VTK series there is an earlier run's"):
+        minidem.run(SETTLE, with_frames + ["output.vtk=false"], out=tmp_path)
+    assert not (tmp_path / "particles.pvd").exists() and not (tmp_path / "walls.vtu").exists()
+    assert not any(tmp_path.glob("particles_*.vtu"))
+    assert minidem.open_results(tmp_path).series is None
+    aside = tmp_path / "previous_series"
+    assert all((aside / name).is_file() for name in listed + ["particles.pvd", "walls.vtu"])
+    minidem.run(SETTLE, with_frames, out=tmp_path)
+    assert not aside.exists() and (tmp_path / "particles.pvd").is_file()
+
+
+def test_the_last_good_state_of_a_blow_up_stays_until_a_run_succeeds(tmp_path, monkeypatch):
+    # last_good.npz was deleted when the next run started (a user's audit, 2026-12-08: the
+    # state before the blow-up gone while a smaller time step was being tried). It stays
+    # while the next run goes on, a blow-up of that run writes its own, and a run that
+    # succeeds deletes it (beside a successful summary it would read as that run's).
+    import minidem
+
+    with pytest.warns(UserWarning), pytest.raises(minidem.RunFailure):
+        minidem.run(OBLIQUE, {"run.dt": 2e-4, "run.allow_unstable_dt": True}, out=tmp_path)
+    assert (tmp_path / checkpoint.LAST_GOOD).exists()
+    seen_while_running = []
+    original = simulation.Simulation.run
+
+    def run(self, *args, **kwargs):
+        seen_while_running.append((tmp_path / checkpoint.LAST_GOOD).exists())
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(simulation.Simulation, "run", run)
+    minidem.run(OBLIQUE, out=tmp_path)
+    assert seen_while_running == [True]
+    assert not (tmp_path / checkpoint.LAST_GOOD).exists() and (tmp_path / "summary.json").exists()
+
+
 @pytest.fixture(scope="module")
 def settle_guard():
     sim = simulation.Simulation(scenario.load_scene(SETTLE, SMALL_SETTLE + ["run.end_time=0.5"]))

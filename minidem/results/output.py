@@ -25,11 +25,17 @@ PARTICLE_ARRAYS = {"radius": "m", "velocity": "m/s", "angular_velocity": "rad/s"
                    "particle_id": "", "material_id": ""}
 
 
-def write_run_files(directory: Path, result) -> dict:
+def write_run_files(directory: Path, result, wrote_series: bool) -> dict:
     """Write ``summary.json`` (and ``trace.csv`` when the run traced its contact) of a
     finished run into ``directory``; return the summary. What ``minidem run`` and
-    ``minidem.run(..., out=DIR)`` write, through this one function."""
+    ``minidem.run(..., out=DIR)`` write, through this one function. An earlier run's
+    trace and, when this run wrote no VTK series (``wrote_series`` False), its series are
+    put aside: beside this run's summary they read as this run's (open_results, and
+    ParaView's file dialog)."""
+    import warnings
+
     from minidem import files
+    from minidem.engine.checkpoint import LAST_GOOD
     from minidem.results import analysis
 
     summary = analysis.summary(result)
@@ -39,11 +45,16 @@ def write_run_files(directory: Path, result) -> dict:
 
         files.write_csv(Path(directory) / "trace.csv", TRACE_COLUMNS, result.trace.tolist())
     elif (Path(directory) / "trace.csv").exists():
-        # an earlier run's trace beside this run's summary read as this run's (open_results)
-        import warnings
-
         warnings.warn(f"{directory}: trace.csv is an earlier run's (this run traced nothing): renamed "
                       f"{_set_aside(Path(directory) / 'trace.csv')}", stacklevel=2)
+    if not wrote_series:
+        from minidem.results.vtk import set_aside_unwritten_series
+
+        told = set_aside_unwritten_series(directory)
+        if told:
+            warnings.warn(told, stacklevel=2)
+    # an earlier failed run's state before its blow-up, kept until a run here succeeds
+    (Path(directory) / LAST_GOOD).unlink(missing_ok=True)
     return summary
 
 
@@ -201,15 +212,15 @@ class Output:
 
 def set_aside_earlier_results(directory: str | Path, started: float) -> str | None:
     """After a run into ``directory`` failed (a blow-up, a result it could not write): the
-    summary.json and final_state.npz an earlier run left there, older than ``started``
+    summary.json, final_state.npz, trace.csv and last_good.npz an earlier run left there, older than ``started``
     (time.time() at the run's start), would read as this run's result (a script checking
     summary.json saw the old success), so they are renamed *.previous.* and kept. Returns
     what to tell the user, or None when there was nothing to move."""
-    from minidem.engine.checkpoint import FINAL_STATE
+    from minidem.engine.checkpoint import FINAL_STATE, LAST_GOOD
     from minidem.results.vtk import PREVIOUS_SERIES
 
     moved, kept = [], []
-    for name in ("summary.json", FINAL_STATE, "trace.csv"):
+    for name in ("summary.json", FINAL_STATE, "trace.csv", LAST_GOOD):
         path = Path(directory) / name
         try:
             if path.stat().st_mtime >= started:  # this run's own (its final state, then a failed summary)

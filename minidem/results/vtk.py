@@ -742,6 +742,8 @@ class VTKSeriesWriter:
 
         aside = os.path.join(self.directory, folder)
         names = self._earlier_series(aside)
+        if os.path.isfile(os.path.join(aside, "walls.vtu")):  # put there by set_aside_unwritten_series
+            names.append("walls.vtu")
         try:
             # the collections last: after a failure they still list what is left, for the next run
             for name in sorted(names, key=lambda n: n.endswith(".pvd")):
@@ -876,6 +878,42 @@ if __name__ == "__main__":  # pragma: no cover
 
 # the subfolder an earlier run's series waits in while a run writes its own (kept if it fails)
 PREVIOUS_SERIES = "previous_series"
+
+
+def set_aside_unwritten_series(directory) -> str | None:
+    """A run that succeeded without writing a VTK series (``output.vtk = false``, or a
+    scene whose output has none) into a directory holding an earlier run's series and
+    ``walls.vtu``: they would read as this run's (``minidem.open_results``, ParaView), so
+    they go where a run with frames puts them at its first frame, PREVIOUS_SERIES (a
+    failed run's frames are deleted when that folder holds a series already; the folder
+    is emptied by the next run with frames that succeeds). Returns what to tell the
+    user, or None when there was nothing."""
+    from minidem.files import output_error
+
+    writer = VTKSeriesWriter(directory, "particles")
+    earlier = writer._earlier_series(writer.directory)
+    walls = os.path.join(writer.directory, "walls.vtu")
+    has_walls = os.path.isfile(walls) and not os.path.islink(walls)
+    if not earlier and not has_walls:
+        return None
+    aside = os.path.join(writer.directory, PREVIOUS_SERIES)
+    writer.set_aside_earlier_frames(PREVIOUS_SERIES)
+    try:
+        # left when the folder held a series already: the collections, which list the
+        # frames just deleted, and the walls
+        for name in (f"{writer.prefix}.pvd", f"{writer.prefix}_contacts.pvd"):
+            if name in earlier and os.path.isfile(os.path.join(writer.directory, name)):
+                os.remove(os.path.join(writer.directory, name))
+        if has_walls:
+            os.makedirs(aside, exist_ok=True)
+            if os.path.exists(os.path.join(aside, "walls.vtu")):  # the older series' walls
+                os.remove(walls)
+            else:
+                os.replace(walls, os.path.join(aside, "walls.vtu"))
+    except OSError as exc:
+        raise output_error(aside, exc) from None
+    return (f"{writer.directory}: the VTK series there is an earlier run's (this run wrote none): moved to "
+            f"{aside}/ (or deleted where that folder holds an older one), as a run with frames does")
 
 
 class SimulationFrames:
