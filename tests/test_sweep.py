@@ -16,6 +16,7 @@ import json
 import os
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -111,6 +112,28 @@ def test_a_sweep_after_parallel_loops_in_the_same_process_does_not_fork(referenc
     directory, _ = reference
     sweep.run(_plan(), tmp_path, progress=False, executor=executors.LocalProcesses(2))
     assert (tmp_path / "sweep.csv").read_bytes() == (directory / "sweep.csv").read_bytes()
+
+
+def test_a_single_impact_starts_no_threads_so_a_sweep_after_it_still_forks():
+    # A user's script ran the impact, then a sweep with workers=2, without a __main__
+    # guard: the impact's run had started numba's threads (numba.get_num_threads), so
+    # the pool started fresh Pythons, which ran the script again, and every case was
+    # lost (a user's audit, 2026-12-08). A serial kernel now leaves the threads alone.
+    code = ("import minidem; from minidem.studies import executors; "
+            f"minidem.run({str(OBLIQUE)!r}); print(executors._fork_is_safe())")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and done.stdout.split()[-1] == "True", done.stderr
+
+
+def test_workers_that_could_not_fork_and_died_say_why():
+    # After a parallel run the workers start fresh Pythons, which run the main script
+    # again: a script without the __main__ guard starts the sweep again in each, and
+    # multiprocessing kills them. The lost cases say so and what to do.
+    from concurrent.futures.process import BrokenProcessPool
+
+    hint = executors._not_forked_hint(BrokenProcessPool("terminated abruptly"))
+    assert "if __name__ == \"__main__\":" in hint and "workers=1" in hint
+    assert executors._not_forked_hint(ValueError("a case's own error")) == ""
 
 
 def test_interrupted_sweep_resumes_with_only_the_missing_cases(reference, tmp_path):

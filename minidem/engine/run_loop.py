@@ -263,8 +263,10 @@ class RunLoop:
         threads = threads or self.loop_threads.current
         samples = (np.empty((start_step + n_steps) // self.sample_steps - start_step // self.sample_steps)
                    if sampled else self.no_samples)
-        # every parallel loop of the chunk (the opening kick_drift too) on that many
-        numba.set_num_threads(threads)
+        # every parallel loop of the chunk (the opening kick_drift too) on that many; a
+        # serial kernel has none (Simulation.run)
+        if self.sim.parallel:
+            numba.set_num_threads(threads)
         taken, needs_rebuild = self.kernel.advance(*self.arguments(start_step, n_steps, completing, trace, threads,
                                                                    dt, stop_at_separation, samples=samples,
                                                                    store_reactions=store_reactions))

@@ -811,8 +811,13 @@ class Simulation:
         Raises :class:`RunFailure` on a blow-up (see :mod:`minidem.engine.blowup`), after
         restoring ``self.state`` to the last good state (and writing it, with checkpoints).
         """
-        threads_before = numba.get_num_threads()
         loop_threads = self.loop_threads()
+        if not self.parallel:
+            # a serial kernel does not start numba's threads (numba.get_num_threads would):
+            # a process without them can still fork its sweep workers (studies.executors),
+            # which a process with them cannot do safely
+            return RunLoop(self, chunk_steps, progress, on_frame, loop_threads, checkpoints, resume_from).run()
+        threads_before = numba.get_num_threads()
         # every parallel loop, the neighbour-list builds too, runs on the particle loops' count
         numba.set_num_threads(loop_threads)
         try:

@@ -120,6 +120,21 @@ def _fork_is_safe() -> bool:
     return parallel is None or not getattr(parallel, "_is_initialized", False)
 
 
+def _not_forked_hint(exc: BaseException) -> str:
+    """Why workers that were not forked may die at once: each starts a fresh Python,
+    which runs the main script again (multiprocessing's spawn and forkserver), and a
+    script whose sweep is not under ``if __name__ == "__main__":`` starts the sweep
+    again in every worker, which multiprocessing refuses."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    script = getattr(sys.modules.get("__main__"), "__file__", None)
+    if not isinstance(exc, BrokenProcessPool) or not script:
+        return ""
+    return (f" (numba's threads run in this process, so its workers are not forked but start a fresh Python, "
+            f"which runs {script} again: put that script's top-level code under "
+            f"'if __name__ == \"__main__\":', or pass workers=1)")
+
+
 class LocalProcesses:
     """Worker processes on this machine (forked where the platform allows it)."""
 
@@ -154,7 +169,8 @@ class LocalProcesses:
                 try:
                     results = future.result()
                 except Exception as exc:  # noqa: BLE001 - a broken pool loses its tasks, not the sweep
-                    results = [Lost(f"{type(exc).__name__}: {exc}")] * len(batch)
+                    results = [Lost(f"{type(exc).__name__}: {exc}" + ("" if forked else _not_forked_hint(exc)))
+                               ] * len(batch)
                 yield from zip(batch, results)
         finally:
             # on Ctrl-C or an abandoned generator: no new batches, do not wait for them
