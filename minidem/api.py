@@ -412,8 +412,9 @@ class _ProgressBar:
             from tqdm.auto import tqdm
 
             self.bar = tqdm(total=total, unit="step", delay=2.0)
-        self.bar.update(steps - self.bar.n)
+        # the postfix first: update() draws the bar, with the postfix it holds then
         self.bar.set_postfix_str(f"t={steps * self.dt:.4g} s, {contacts} contacts", refresh=False)
+        self.bar.update(steps - self.bar.n)
 
     def close(self):
         if self.bar is not None:

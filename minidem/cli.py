@@ -280,9 +280,10 @@ class _progress_bar:
             from tqdm import tqdm
 
             self.bar = tqdm(total=total, unit="step", delay=2.0, dynamic_ncols=True, file=sys.stderr)
-        self.bar.update(steps - self.bar.n)
+        # the postfix first: update() draws the bar, with the postfix it holds then
         self.bar.set_postfix_str(f"t={steps * self.dt:.4g} s, {self.scene.n_particles} particles, "
                                  f"{contacts} contacts", refresh=False)
+        self.bar.update(steps - self.bar.n)
 
     def __exit__(self, *exc):
         if self.bar is not None:
