@@ -125,14 +125,17 @@ def test_a_single_impact_starts_no_threads_so_a_sweep_after_it_still_forks():
     assert done.returncode == 0 and done.stdout.split()[-1] == "True", done.stderr
 
 
-def test_workers_that_could_not_fork_and_died_say_why():
+def test_workers_that_could_not_fork_and_died_say_why(monkeypatch):
     # After a parallel run the workers start fresh Pythons, which run the main script
     # again: a script without the __main__ guard starts the sweep again in each, and
     # multiprocessing kills them. The lost cases say so and what to do.
     from concurrent.futures.process import BrokenProcessPool
 
+    monkeypatch.setattr(sys.modules["__main__"], "__file__", "/home/user/loop.py", raising=False)
     hint = executors._not_forked_hint(BrokenProcessPool("terminated abruptly"))
-    assert "if __name__ == \"__main__\":" in hint and "workers=1" in hint
+    assert "runs /home/user/loop.py again" in hint and "if __name__ == \"__main__\":" in hint and "workers=1" in hint
+    monkeypatch.delattr(sys.modules["__main__"], "__file__")  # a notebook's main: no script to run again
+    assert executors._not_forked_hint(BrokenProcessPool("terminated abruptly")) == ""
     assert executors._not_forked_hint(ValueError("a case's own error")) == ""
 
 

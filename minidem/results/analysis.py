@@ -181,10 +181,10 @@ def summary(result: RunResult) -> dict:
     out = {"law": result.law.name}
     if scene.impact is not None:
         out.update({"angle_deg": scene.impact.angle_deg, "speed": scene.impact.speed})
-        # no touch by run.end_time: there is no rebound to measure (and en = -1 would
-        # make x divide by zero)
-        measures = rebound(result) if result.first_contact_time >= 0 else {k: None for k in
-                                                                            ("en", "et", "x", "y1", "y2")}
+        # no touch by run.end_time, or still touching then: there is no rebound to measure
+        # (en = -1 would make x divide by zero; mid-contact, en -0.40 read as a result)
+        measures = (rebound(result) if result.first_contact_time >= 0 and result.contacts == 0
+                    else {k: None for k in ("en", "et", "x", "y1", "y2")})
     else:
         out.update({"angle_deg": None, "speed": None})
         measures = {k: None for k in ("en", "et", "x", "y1", "y2")}
