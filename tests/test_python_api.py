@@ -193,6 +193,7 @@ def test_minidem_render_writes_a_png_and_a_gif_of_the_series(cradle_run, tmp_pat
     assert Image.open(tmp_path / "cradle.gif").n_frames == len(minidem.open_results(out).series)
     bad = run_cli("render", out, "--array", "speed")
     assert bad.returncode == 2 and "not a particle array; arrays: radius, velocity" in bad.stderr
+    assert "reading and drawing" not in bad.stderr  # refused before the read (a user's audit)
     # refused before anything is drawn (review: --fps 0 drew the PNG for 30 s, then died
     # dividing by zero, an internal error)
     for fps in ("0", "-5", "nan"):

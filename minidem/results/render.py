@@ -170,6 +170,8 @@ def render(directory: str | Path, array: str = "velocity", png: str | Path | Non
     if not -len(series) <= frame < len(series):
         raise RenderError(f"--frame {frame}: the series has {len(series)} frame(s) (0..{len(series) - 1}, or "
                           "negative from the end)")
+    # an array the frames do not have is refused before the long read (a user's audit)
+    colour_array(series[frame % len(series)], array)
     png = Path(png) if png else output.directory / "render.png"
     written = []
     picked = (np.unique(np.linspace(0, len(series) - 1, min(len(series), max_frames)).round().astype(int))
