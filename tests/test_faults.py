@@ -339,6 +339,7 @@ def test_a_failed_run_keeps_the_earlier_runs_vtk_series_and_a_success_replaces_i
     assert again.returncode == 0 and not (tmp_path / "previous_series").exists()
     assert len(ET.parse(tmp_path / "particles.pvd").getroot().findall(".//DataSet")) == len(frames)
 
+
 def test_a_run_without_frames_puts_an_earlier_runs_series_aside(tmp_path):
     # A run that writes no VTK series (output.vtk = false here) into a directory holding an
     # earlier run's series left that series beside its own summary: open_results and

@@ -630,6 +630,20 @@ def test_a_scene_with_no_contact_does_not_speak_of_an_unfinished_contact(capsys,
     assert "no contact by t = " in err and 'give run.stop = "time"' in err and "had not ended" not in err, err
 
 
+def test_an_impact_that_ends_in_contact_reports_no_rebound(capsys, tmp_path):
+    """An impact run to a time that ends mid-contact printed en -0.40, et, x, y1 and y2 as
+    results (a user's audit, 2026-12-08): there is no rebound to measure, so they are
+    null, and a warning says why, whether the run stops at separation or at a time."""
+    for stop in ("separation", "time"):
+        out = tmp_path / stop
+        code, err = main(capsys, "run", OBLIQUE, "--out", out, "--quiet",
+                         *sets(f'run.stop="{stop}"', "run.end_time=5e-5"))
+        assert code == 0, err
+        summary = json.loads((out / "summary.json").read_text())
+        assert all(summary[key] is None for key in ("en", "et", "x", "y1", "y2")), summary
+        assert "had not ended by t = 5.003e-05 s" in err, err
+
+
 def _to_toml(data: dict) -> str:
     lines = []
     for section, table in data.items():

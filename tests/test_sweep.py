@@ -134,6 +134,8 @@ def test_workers_that_could_not_fork_and_died_say_why(monkeypatch):
     monkeypatch.setattr(sys.modules["__main__"], "__file__", "/home/user/loop.py", raising=False)
     hint = executors._not_forked_hint(BrokenProcessPool("terminated abruptly"))
     assert "runs /home/user/loop.py again" in hint and "if __name__ == \"__main__\":" in hint and "workers=1" in hint
+    monkeypatch.setattr(sys.modules["__main__"], "__file__", "/venv/bin/minidem")  # the CLI's own: no advice
+    assert executors._not_forked_hint(BrokenProcessPool("terminated abruptly")) == ""
     monkeypatch.delattr(sys.modules["__main__"], "__file__")  # a notebook's main: no script to run again
     assert executors._not_forked_hint(BrokenProcessPool("terminated abruptly")) == ""
     assert executors._not_forked_hint(ValueError("a case's own error")) == ""

@@ -214,3 +214,16 @@ def test_a_contact_far_shorter_than_the_automatic_time_step_assumed_is_reported(
     assert not any("under-resolved" in w for w in warnings_of(**{"contact": {"law": "plain_spring",
                                                                              "normal_stiffness": 1e8}}))
     assert warnings_of() == []
+
+
+def test_an_impact_without_a_rebound_ends_the_battery_with_the_reason():
+    # The checks measure rebounds: an impact still in contact at its end has none (its
+    # rebound keys are null), and the arithmetic on them was a TypeError traceback (a
+    # review, 2026-12-08). It is a LawError naming the law, the angle and the reason.
+    import pytest
+
+    from minidem.contact.laws import LawError
+
+    with pytest.raises(LawError, match=r"law 'hm': the impact at 0 deg has no rebound to measure: the contacts "
+                                       r"had not ended by t = "):
+        verify.Battery("hm").run("impact.angle_deg=0.0", "run.end_time=5e-5")

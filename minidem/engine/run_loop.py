@@ -264,7 +264,7 @@ class RunLoop:
         samples = (np.empty((start_step + n_steps) // self.sample_steps - start_step // self.sample_steps)
                    if sampled else self.no_samples)
         # every parallel loop of the chunk (the opening kick_drift too) on that many; a
-        # serial kernel has none (Simulation.run)
+        # serial kernel has none, and its list builds' count is set by Simulation.run
         if self.sim.parallel:
             numba.set_num_threads(threads)
         taken, needs_rebuild = self.kernel.advance(*self.arguments(start_step, n_steps, completing, trace, threads,

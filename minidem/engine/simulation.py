@@ -812,10 +812,12 @@ class Simulation:
         restoring ``self.state`` to the last good state (and writing it, with checkpoints).
         """
         loop_threads = self.loop_threads()
-        if not self.parallel:
-            # a serial kernel does not start numba's threads (numba.get_num_threads would):
-            # a process without them can still fork its sweep workers (studies.executors),
-            # which a process with them cannot do safely
+        if not self.parallel and not self.pairs and self.scene.walls.triangles.shape[0] == 0:
+            # one sphere among planes and cylinders runs no parallel loop (no kernel's, no
+            # neighbour list's or mesh candidates'): it leaves numba's threads unstarted
+            # (numba.get_num_threads would start them), and a process without them can
+            # still fork its sweep workers (studies.executors), which a process with them
+            # cannot do safely
             return RunLoop(self, chunk_steps, progress, on_frame, loop_threads, checkpoints, resume_from).run()
         threads_before = numba.get_num_threads()
         # every parallel loop, the neighbour-list builds too, runs on the particle loops' count

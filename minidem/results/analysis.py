@@ -107,6 +107,9 @@ def incomplete_contact(result: RunResult) -> str | None:
                     "run.end_time")
         return (f"the contacts had not ended by t = {result.time:.4g} s ({limit}; {result.contacts} contact(s) at "
                 "the end)")
+    if scene.impact is not None and result.contacts > 0:  # run.stop = "time": the rebound keys are null
+        return (f"the impact's contact had not ended by t = {result.time:.4g} s (run.end_time): no rebound to "
+                "measure")
     return None
 
 

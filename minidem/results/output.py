@@ -50,7 +50,10 @@ def write_run_files(directory: Path, result, wrote_series: bool) -> dict:
     if not wrote_series:
         from minidem.results.vtk import set_aside_unwritten_series
 
-        told = set_aside_unwritten_series(directory)
+        try:
+            told = set_aside_unwritten_series(directory)
+        except MinidemError as exc:  # the run's own results are written: a warning, not a failed run
+            told = f"{exc}: the VTK series in {directory} is an earlier run's, not this one's"
         if told:
             warnings.warn(told, stacklevel=2)
     # an earlier failed run's state before its blow-up, kept until a run here succeeds

@@ -171,7 +171,8 @@ def render(directory: str | Path, array: str = "velocity", png: str | Path | Non
         raise RenderError(f"--frame {frame}: the series has {len(series)} frame(s) (0..{len(series) - 1}, or "
                           "negative from the end)")
     # an array the frames do not have is refused before the long read (a user's audit)
-    colour_array(series[frame % len(series)], array)
+    shown = series[frame % len(series)]
+    colour_array(shown, array)
     png = Path(png) if png else output.directory / "render.png"
     written = []
     picked = (np.unique(np.linspace(0, len(series) - 1, min(len(series), max_frames)).round().astype(int))
@@ -179,7 +180,8 @@ def render(directory: str | Path, array: str = "velocity", png: str | Path | Non
     if notify is not None:
         notify(f"reading and drawing {len(picked) or 1} frame(s) of {output.directory / 'particles.pvd'}"
                + (f" (the GIF: {len(picked)} of {len(series)})" if len(picked) else ""))
-    meshes = {k: series[int(k)] for k in set(picked.tolist()) | {frame % len(series)}}
+    meshes = {int(k): series[int(k)] for k in set(picked.tolist()) - {frame % len(series)}}
+    meshes[frame % len(series)] = shown
     scene = _Scene(output.walls, list(meshes.values()), array, window)
     try:
         scene.show(meshes[frame % len(series)], float(series.times[frame]))

@@ -128,11 +128,21 @@ def _not_forked_hint(exc: BaseException) -> str:
     from concurrent.futures.process import BrokenProcessPool
 
     script = getattr(sys.modules.get("__main__"), "__file__", None)
-    if not isinstance(exc, BrokenProcessPool) or not script:
+    if not isinstance(exc, BrokenProcessPool) or not script or _is_minidem_entry(script):
         return ""
-    return (f" (numba's threads run in this process, so its workers are not forked but start a fresh Python, "
-            f"which runs {script} again: put that script's top-level code under "
-            f"'if __name__ == \"__main__\":', or pass workers=1)")
+    return (f" (the workers were not forked: numba's threads run in this process, so each starts a fresh Python, "
+            f"which runs {script} again; if that script's top-level code is not under "
+            f"'if __name__ == \"__main__\":', every worker starts the sweep again and dies: guard it, or pass "
+            f"workers=1)")
+
+
+def _is_minidem_entry(script: str) -> bool:
+    """Whether the main script is minidem's own command (the console script, or
+    ``python -m minidem``): its workers re-run no user code."""
+    from pathlib import Path
+
+    path = Path(script)
+    return path.stem == "minidem" or Path(__file__).resolve().parents[1] in path.resolve().parents
 
 
 class LocalProcesses:

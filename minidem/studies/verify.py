@@ -79,7 +79,16 @@ class Battery:
             data.setdefault("output", {})["trace"] = True
         scene = scenario.build_scene(copy.deepcopy(data), source=f"<verify {self.law.name}>", output_directory="-")
         result = simulation.Simulation(scene).run()
-        return analysis.summary(result), result
+        summary = analysis.summary(result)
+        if scene.impact is not None and scene.stop == "separation" and summary["en"] is None:
+            # every check that runs an impact to its separation measures its rebound (a
+            # None in their arithmetic was a TypeError traceback; the adhesion check runs
+            # to a time, for a sphere that may stick)
+            raise laws.LawError(f"law '{self.law.name}': the impact at {scene.impact.angle_deg:g} deg has no rebound "
+                                f"to measure: {analysis.incomplete_contact(result)}; the checks measure rebounds "
+                                "(a contact that outlasts the law's contact_time a hundredfold, or a sphere that "
+                                "sticks)")
+        return summary, result
 
     def has_parameter(self, name: str) -> bool:
         return any(p.name == name for p in self.law.parameters)
