@@ -1320,23 +1320,23 @@ def advance(particles, law, planes, cylinders, meshes, pairs, gravity, position_
     sampled = 0
     if not PARALLEL:
         threads = 1
-    drifted = resume  # the opening half kick and drift of the current step are done
+    drift_done = resume  # the opening half kick and drift of the current step are done
     for step in range(n_steps):
-        if not drifted:
+        if not drift_done:
             if kick_drift(particles, dt, position_at_build, half_skin_squared) > 0:
                 return step, True
         time = start_time + (start_step + step + 1) * dt
         sampling = sample_steps > 0 and (start_step + step + 1) % sample_steps == 0 and sampled < samples.shape[0]
-        drifted = step + 1 < n_steps and step + 1 >= trace.shape[0] and not stop_at_separation
-        step_records = (sampling, inertia, particle_energy, store_reactions and not drifted)
+        drift_done = step + 1 < n_steps and step + 1 >= trace.shape[0] and not stop_at_separation
+        step_records = (sampling, inertia, particle_energy, store_reactions and not drift_done)
         active, moved_too_far = compute_forces(particles, law, planes, cylinders, meshes, pairs, gravity, dt, time,
-                                               tracking, threads, drifted, position_at_build, half_skin_squared, bounds,
+                                               tracking, threads, drift_done, position_at_build, half_skin_squared, bounds,
                                                first_partner, block_cycles, step_records)
         if status[0] != OK:
             return step + 1, False
         if PARALLEL:  # compile-time: a serial kernel has no second pass to compile
             if threads > 1:
-                moved_too_far += finish_kick_drift(particles, pairs, dt, drifted, position_at_build,
+                moved_too_far += finish_kick_drift(particles, pairs, dt, drift_done, position_at_build,
                                                    half_skin_squared, threads, bounds, first_partner, step_records)
         if sampling:
             samples[sampled] = total_energy(particle_energy, block_sums)
