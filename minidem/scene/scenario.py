@@ -550,8 +550,9 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
                 try:
                     node = node[_list_index(part)]
                 except (ValueError, IndexError):
+                    entries = "1 entry" if len(node) == 1 else f"{len(node)} entries"
                     raise ScenarioError(f"--set {text!r}: '{'.'.join(path[:depth + 1])}' is not a valid "
-                                        f"index (the list has {len(node)} {'entry' if len(node) == 1 else 'entries'})") from None
+                                        f"index (the list has {entries})") from None
             else:
                 node = node.setdefault(part, {})
             # a list entry or a table's key may hold a value where the path needs a table

@@ -246,10 +246,9 @@ def _abscissa_label(sweep):
     """The abscissa's key as a label with its unit from the scenario schema, e.g.
     "impact.spin (rad/s)", "particles.0.angular_velocity.2 (rad/s)"."""
     from minidem.scene import scenario
-    from minidem.scene.scenario import SCHEMA
 
     parts = scenario.key_path(sweep.abscissa, "sweep.abscissa")
-    keys = SCHEMA.get(parts[0], (None, ()))[1]
+    keys = scenario.SCHEMA.get(parts[0], (None, ()))[1]
     names = [p for p in parts[1:] if not p.isdigit()]
     unit = next((k.unit for k in keys if names and k.name == names[-1]), "")
     return sweep.abscissa + (f" ({unit})" if unit and unit != "-" else "")
